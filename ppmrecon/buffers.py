@@ -249,9 +249,11 @@ def _open_channels(path: Path) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
     if magic != _EXR_MAGIC:
         raise NotExrError(path, "not an OpenEXR file (bad magic number)")
     try:
+        # Some tools write each layer as its own part: merge every part's channels.
         with OpenEXR.File(str(path), separate_channels=True) as f:
             header = dict(f.header())
-            raw = {name: (ch.pixels, ch.type()) for name, ch in f.channels().items()}
+            raw = {name: (ch.pixels, ch.type()) for part in f.parts
+                   for name, ch in part.channels.items()}
     except Exception as exc:  # the bindings raise RuntimeError for any read failure
         raise TruncatedFileError(path, f"truncated or corrupt EXR ({exc})") from None
 

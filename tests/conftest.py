@@ -1,0 +1,32 @@
+"""Shared fixtures. Tests never read ../shared: they use the project's own scenes and data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ppmrecon import buffers as B
+
+
+def make_buffer(h: int = 6, w: int = 7, seed: int = 0) -> B.BufferFile:
+    """A small, valid, random buffer file (all layers, full header)."""
+    rng = np.random.default_rng(seed)
+    header = {
+        B.H_VERSION: B.SCHEMA_VERSION, B.H_METHOD: "sppm", B.H_KERNEL: "constant",
+        B.H_PASSES: 16, B.H_PHOTONS: 1024, B.H_ALPHA: 2.0 / 3.0, B.H_KNN: 20,
+        B.H_SEED: 3, B.H_SCENE: "test", B.H_SECONDS: 1.25, "ppmrecon.stopped": "complete",
+    }
+    return B.BufferFile(
+        estimates=rng.random((5, h, w, 3), dtype=np.float32) * 4,
+        variances=rng.random((5, h, w), dtype=np.float32) * 1e-2,
+        radii=rng.random((5, h, w), dtype=np.float32) * 0.1,
+        albedo=rng.random((h, w, 3), dtype=np.float32),
+        normal=rng.standard_normal((h, w, 3)).astype(np.float32),
+        depth=rng.random((h, w), dtype=np.float32) * 5,
+        header=header,
+    )
+
+
+@pytest.fixture
+def buffer_file() -> B.BufferFile:
+    return make_buffer()
