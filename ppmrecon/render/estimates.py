@@ -1,0 +1,64 @@
+"""Per-pixel running estimates over passes (SPEC section 3, step 4).
+
+The pixel value after N passes is the mean of the per-pass estimates E_1..E_N (the
+pixel-estimation form of Knaus & Zwicker, paper 002 Eq. 1-2). Welford's recurrence
+(Welford 1962) over the same values gives the sample variance, and the variance of
+the mean is
+
+    Var[mean] = M2 / ((N - 1) N),   averaged over R, G, B,
+
+reported as 0 after a single pass (unknown).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+
+@dataclass
+class RunningMean:
+    """Welford accumulator of Color3f per pixel."""
+
+    mean: mi.Color3f
+    m2: mi.Color3f
+    n: int = 0
+
+    @classmethod
+    def zeros(cls, size: int) -> "RunningMean":
+        return cls(dr.zeros(mi.Color3f, size), dr.zeros(mi.Color3f, size), 0)
+
+    def add(self, value: mi.Color3f) -> None:
+        self.n += 1
+        delta = value - self.mean
+        self.mean = self.mean + delta / self.n
+        self.m2 = self.m2 + delta * (value - self.mean)
+        dr.eval(self.mean, self.m2)
+
+    def variance_of_mean(self) -> mi.Float:
+        if self.n < 2:
+            return dr.zeros(mi.Float, dr.width(self.mean))
+        var = self.m2 / ((self.n - 1) * self.n)
+        return (var.x + var.y + var.z) / 3.0
+
+    def numpy(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """(mean (H, W, 3), variance of the mean (H, W)) as float32."""
+        mean = np.asarray(self.mean).reshape(3, height, width).transpose(1, 2, 0)
+        var = np.asarray(self.variance_of_mean()).reshape(height, width)
+        return np.ascontiguousarray(mean, np.float32), np.ascontiguousarray(var, np.float32)
+
+
+@dataclass
+class PlainMean:
+    """Running mean of a per-pixel G-buffer quantity (Float or 3-vector)."""
+
+    mean: object
+    n: int = 0
+
+    def add(self, value) -> None:
+        self.n += 1
+        self.mean = self.mean + (value - self.mean) / self.n
+        dr.eval(self.mean)

@@ -1,0 +1,102 @@
+"""Eye pass: one eye path per lane to its first non-delta hit, the gather point
+(SPEC section 3, step 2).
+
+Each lane samples a uniform position inside its pixel (box filter) and follows delta
+interactions (mirror, glass) by BSDF sampling in radiance mode, accumulating
+
+    L_e += beta * L_emitted            (emitters seen directly or through specular chains)
+
+until the first surface whose BSDF has a diffuse or glossy component: that surface is
+the gather point, carrying the throughput beta to the camera. Paths that escape (the
+environment, if any, is added to L_e) or exceed ``max_depth`` keep only L_e.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .rng import make_rng
+
+
+@dataclass
+class GatherPoints:
+    """Gather points of one wavefront (one per lane) and their G-buffer values."""
+
+    si: mi.SurfaceInteraction3f   # valid where ``found``
+    found: mi.Bool                 # the path reached a non-delta surface
+    beta: mi.Color3f               # throughput camera -> gather point
+    emitted: mi.Color3f            # L_e collected on the way
+    albedo: mi.Color3f             # diffuse reflectance at the gather point
+    normal: mi.Normal3f            # world-space shading normal at the gather point
+    depth: mi.Float                # distance along the eye path to the gather point
+    n_oriented: mi.Normal3f        # geometric normal facing the eye
+
+    def __len__(self) -> int:
+        return dr.width(self.found)
+
+
+@dr.syntax
+def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: int):
+    """Follow delta bounces; returns the last ray, throughput, L_e, path length, found."""
+    beta = mi.Color3f(1.0)
+    emitted = mi.Color3f(0.0)
+    length = mi.Float(0.0)
+    depth = mi.UInt32(0)
+    found = mi.Bool(False)
+    active = mi.Bool(True)
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
+
+    while active:
+        si = scene.ray_intersect(ray, active)
+        # The environment (invalid si) or an area light: what the eye sees directly.
+        emitter = si.emitter(scene, active)
+        emitted += dr.select(active, beta * emitter.eval(si, active), 0.0)
+
+        hit = active & si.is_valid()
+        bsdf = si.bsdf(ray)
+        smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        stop_here = hit & smooth
+        found |= stop_here
+        length += dr.select(hit, si.t, 0.0)
+        active = hit & ~smooth
+
+        bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
+                                      mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+        beta[active] *= bsdf_weight
+        ray[active] = si.spawn_ray(si.to_world(bs.wo))
+        depth += 1
+        active &= (depth < max_depth) & dr.any(beta > 0.0)
+
+    return ray, beta, emitted, length, found
+
+
+def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int) -> GatherPoints:
+    """One eye path per pixel (row-major, top row first) with random stream ``seed``."""
+    film_size = sensor.film().crop_size()
+    width, height = int(film_size[0]), int(film_size[1])
+    n = width * height
+    rng = make_rng(n, seed)
+    idx = dr.arange(mi.UInt32, n)
+    pixel = mi.Point2f(mi.Float(idx % width), mi.Float(idx // width))
+    jitter = mi.Point2f(rng.next_float32(), rng.next_float32())
+    film_pos = (pixel + jitter) / mi.ScalarPoint2f(width, height)
+    ray, ray_weight = sensor.sample_ray(time=0.0, sample1=0.5, sample2=film_pos,
+                                        sample3=mi.Point2f(rng.next_float32(), rng.next_float32()))
+    ray = mi.Ray3f(ray)
+
+    last_ray, beta, emitted, length, found = _walk(scene, ray, rng, max_depth)
+    beta *= ray_weight
+    emitted *= ray_weight
+
+    si = scene.ray_intersect(last_ray, found)
+    bsdf = si.bsdf(last_ray)
+    albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
+    normal = dr.select(found, si.sh_frame.n, 0.0)
+    n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
+    gp = GatherPoints(si=si, found=found, beta=beta, emitted=emitted, albedo=albedo,
+                      normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented)
+    dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented)
+    return gp

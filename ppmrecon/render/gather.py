@@ -1,0 +1,113 @@
+"""Gather: one neighbour search per gather point serves all of its bandwidth chains
+(SPEC section 3, step 3; paper 002 Sec. 4.1, Fig. 3).
+
+For gather point x with throughput-free BSDF f and chain radii r_1..r_C, the photons
+within the largest radius R = max_s r_s are visited once and
+
+    S_s = sum_p K_{r_s}(|x_p - x|) * f(x, w_o, w_p) * Phi_p * |w_p . n_s| / |w_p . n_g|
+
+is accumulated for every chain s with |x_p - x| < r_s; the last factor is the
+shading-normal correction of adjoint transport (Veach 1997, Sec. 5.3), which turns
+Mitsuba's cosine-weighted ``bsdf.eval`` into f / |w_p . n_g|. Photons whose oriented
+normal faces away from the gather point's are rejected (the back side of a thin wall
+must neither light nor shrink the estimate), unless the BSDF transmits. The pass
+estimate is then ``L_e + beta * S_s / J`` (see :mod:`ppmrecon.render.integrator`).
+
+The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
+the first pass and reused afterwards (every per-pass number enters as an opaque array).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .eye import GatherPoints
+from .grid import PhotonGrid, cell_hash, cell_of
+from .kernels import kernel_weight
+
+#: A photon counts only if its oriented normal and the gather point's agree this much.
+FACING_COS = 1e-3
+
+
+@dataclass
+class GatherResult:
+    """Per chain slot s: kernel-weighted sum S_s (RGB) and the photon count M_s."""
+
+    flux: list[mi.Color3f]
+    count: list[mi.UInt32]
+
+
+def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant") -> GatherResult:
+    """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
+    0 for unused slots) around every gather point of ``gp``."""
+    n_slots = len(radii)
+    si = gp.si
+    r_search = radii[0]
+    for r in radii[1:]:
+        r_search = dr.maximum(r_search, r)
+    r_search = dr.select(gp.found, r_search, 0.0)
+    r2 = [r * r for r in radii]
+    r_search2 = r_search * r_search
+
+    inv_cell = dr.opaque(mi.Float, 1.0 / grid.cell_size)
+    lo = cell_of(si.p - r_search, inv_cell)
+    hi = cell_of(si.p + r_search, inv_cell)
+    extent = dr.select(gp.found, hi - lo + 1, 0)
+    ex, ey = mi.UInt32(extent.x), mi.UInt32(extent.y)
+    n_cells = ex * ey * mi.UInt32(extent.z)
+
+    bsdf = si.bsdf()
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
+    check_facing = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
+    n_gp = gp.n_oriented
+    mask = grid.table_mask
+
+    def photon_body(k, end, cell, flux, count):
+        xp = dr.gather(mi.Point3f, grid.p, k)
+        # Buckets can hold other cells (hash collisions): count a photon only from its own cell.
+        same_cell = dr.all(cell_of(xp, inv_cell) == cell)
+        d2 = dr.squared_norm(xp - si.p)
+        ok = same_cell & (d2 < r_search2)
+        n_p = dr.gather(mi.Normal3f, grid.n, k, ok)
+        ok &= ~check_facing | (dr.dot(n_p, n_gp) > FACING_COS)
+        w_p = -dr.gather(mi.Vector3f, grid.d, k, ok)
+        cos_g = dr.abs(dr.dot(w_p, si.n))
+        ok &= cos_g > 1e-4
+        f_cos = bsdf.eval(ctx, si, si.to_local(w_p), ok)
+        contrib = f_cos / cos_g * dr.gather(mi.Color3f, grid.power, k, ok)
+        flux = list(flux)
+        count = list(count)
+        for s in range(n_slots):
+            inside = ok & (d2 < r2[s])
+            weight = kernel_weight(kernel, d2, r2[s], sqrt=dr.sqrt)
+            flux[s] = dr.select(inside, flux[s] + weight * contrib, flux[s])
+            count[s] = dr.select(inside, count[s] + 1, count[s])
+        return k + 1, end, cell, tuple(flux), tuple(count)
+
+    def cell_body(c, flux, count):
+        cell = lo + mi.Vector3i(mi.Int32(c % ex), mi.Int32((c // ex) % ey), mi.Int32(c // (ex * ey)))
+        bucket = cell_hash(cell, mask)
+        k = dr.gather(mi.UInt32, grid.start, bucket)
+        end = dr.gather(mi.UInt32, grid.end, bucket)
+        _, _, _, flux, count = dr.while_loop(
+            state=(k, end, cell, flux, count),
+            cond=lambda k, end, cell, flux, count: k < end,
+            body=photon_body,
+            labels=("k", "end", "cell", "flux", "count"),
+            label="ppmrecon_gather_photons")
+        return c + 1, flux, count
+
+    flux0 = tuple(dr.zeros(mi.Color3f, dr.width(gp.found)) for _ in range(n_slots))
+    count0 = tuple(dr.zeros(mi.UInt32, dr.width(gp.found)) for _ in range(n_slots))
+    _, flux, count = dr.while_loop(
+        state=(mi.UInt32(0), flux0, count0),
+        cond=lambda c, flux, count: c < n_cells,
+        body=cell_body,
+        labels=("c", "flux", "count"),
+        label="ppmrecon_gather_cells")
+    flux, count = list(flux), list(count)
+    dr.eval(flux, count)
+    return GatherResult(flux=flux, count=count)

@@ -1,0 +1,284 @@
+"""Multi-bandwidth progressive photon mapping: the pass loop (SPEC section 3).
+
+One pass i = 1, 2, ... reads top to bottom:
+
+    photons  = trace_photons(scene, J)                      photon pass
+    A, B     = trace_eye(seed_A), trace_eye(seed_B)         two decorrelated eye paths
+    r_1      = knn_radius(A) * (1/4, 1/(2 sqrt 2), ..., 1)  initial bandwidths (pass 1)
+    grid     = build_grid(photons, cell from the radii)     one photon map for all chains
+    S_y      = gather(A, [r_y]);  S_z = gather(B, [r_z1..r_z4])
+    E_ik     = L_e + beta * S_ik / J                        per-pass estimate, chain k
+    mean_k, M2_k  <- Welford(E_ik)                          pixel value and its variance
+    r_{i+1}  = controller.update(i, gather statistics)      bandwidth update
+
+Layouts: ``multi`` (the method's input: ~y on hit point A, ~z^1..~z^4 on hit point B),
+``single`` (the conventional baseline: one chain at the second-smallest bandwidth, one
+eye path) and ``shared`` (all five chains on one hit point; a diagnostic for the
+decorrelation study of paper 002 Fig. 11).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+
+from .. import buffers as B
+from .controllers import CHAIN_SCALES, SINGLE_SCALE, Controller, make_controller
+from .estimates import PlainMean, RunningMean
+from .eye import GatherPoints, trace_eye
+from .gather import gather
+from .grid import build_grid
+from .kernels import KERNELS
+from .photons import trace_photons
+from .rng import EYE_A, EYE_B, EYE_SINGLE, PHOTONS, stream_seed
+
+LAYOUTS = ("multi", "single", "shared")
+STAGES = ("photons", "eye", "grid", "gather", "update")
+
+
+@dataclass
+class RenderSettings:
+    """What to render and how; defaults follow SPEC section 3."""
+
+    method: str = "sppm"
+    passes: int | None = 16
+    time_budget: float | None = None
+    photons: int = 1 << 17
+    seed: int = 0
+    kernel: str = "constant"
+    max_depth: int = 8
+    alpha: float = 2.0 / 3.0
+    knn: int = 20
+    layout: str = "multi"
+    method_params: dict[str, Any] = field(default_factory=dict)
+    #: Initial radii are clamped to [min_frac, max_frac] x the scene's bounding radius.
+    radius_min_frac: float = 1e-5
+    radius_max_frac: float = 0.1
+
+    def validate(self) -> None:
+        if self.passes is None and self.time_budget is None:
+            raise ValueError("give a pass count or a time budget")
+        if self.passes is not None and self.passes <= 0:
+            raise ValueError(f"passes must be positive, got {self.passes}")
+        if self.time_budget is not None and not self.time_budget > 0:
+            raise ValueError(f"time budget must be positive, got {self.time_budget}")
+        if self.photons <= 0 or self.max_depth <= 0 or self.knn <= 0:
+            raise ValueError("photons, max depth and k must be positive")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"unknown kernel '{self.kernel}' (choose {', '.join(KERNELS)})")
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"unknown layout '{self.layout}'")
+
+
+@dataclass
+class RenderResult:
+    """Accumulated images (H, W, ...) float32 and the bookkeeping of a render."""
+
+    estimates: np.ndarray          # (C, H, W, 3) one per chain
+    variances: np.ndarray          # (C, H, W)
+    radii: np.ndarray              # (C, H, W)
+    albedo: np.ndarray             # (H, W, 3)
+    normal: np.ndarray             # (H, W, 3)
+    depth: np.ndarray              # (H, W)
+    passes: int
+    seconds: float
+    stage_seconds: dict[str, float]
+    stopped: str
+    header: dict[str, Any]
+
+    def buffer_file(self) -> B.BufferFile:
+        """The five-chain result as a buffer file (``multi`` or ``shared`` layout)."""
+        if self.estimates.shape[0] != B.N_ESTIMATES:
+            raise ValueError("only five-chain renders make a buffer file")
+        return B.BufferFile(self.estimates, self.variances, self.radii, self.albedo,
+                            self.normal, self.depth, dict(self.header))
+
+
+def scene_radius(scene: mi.Scene) -> float:
+    """Half the diagonal of the scene's bounding box."""
+    bbox = scene.bbox()
+    return 0.5 * float(dr.norm(mi.ScalarVector3f(bbox.max) - mi.ScalarVector3f(bbox.min)))
+
+
+def knn_radius(points: GatherPoints, photon_p: mi.Point3f, k: int, r_lo: float, r_hi: float) -> np.ndarray:
+    """Distance from each gather point to its k-th nearest photon (paper 002 Sec. 4.1),
+    clamped to [r_lo, r_hi]; NaN where the eye path found no surface."""
+    from scipy.spatial import cKDTree
+
+    found = np.asarray(points.found)
+    out = np.full(found.shape, np.nan, np.float64)
+    photons = np.asarray(photon_p).T if dr.width(photon_p) else np.zeros((0, 3))
+    if photons.shape[0] == 0 or not found.any():
+        return out
+    query = np.asarray(points.si.p).T[found]
+    kk = min(k, photons.shape[0])
+    dist, _ = cKDTree(photons).query(query, k=[kk], workers=-1)
+    out[found] = np.clip(dist[:, 0], r_lo, r_hi)
+    return out
+
+
+class Renderer:
+    """Runs passes of the chosen method on a loaded scene and accumulates estimates."""
+
+    def __init__(self, scene: mi.Scene, settings: RenderSettings, scene_name: str = "scene"):
+        settings.validate()
+        self.scene = scene
+        self.settings = settings
+        self.scene_name = scene_name
+        self.sensor = scene.sensors()[0]
+        size = self.sensor.film().crop_size()
+        self.width, self.height = int(size[0]), int(size[1])
+        self.n_pixels = self.width * self.height
+        params = dict(settings.method_params)
+        if settings.method == "sppm":
+            params.setdefault("alpha", settings.alpha)
+        self.controller: Controller = make_controller(settings.method, **params)
+        self.scales = (SINGLE_SCALE,) if settings.layout == "single" else CHAIN_SCALES
+        self.n_chains = len(self.scales)
+        self.means = [RunningMean.zeros(self.n_pixels) for _ in range(self.n_chains)]
+        self.albedo = PlainMean(dr.zeros(mi.Color3f, self.n_pixels))
+        self.normal = PlainMean(dr.zeros(mi.Normal3f, self.n_pixels))
+        self.depth = PlainMean(dr.zeros(mi.Float, self.n_pixels))
+        self.passes_done = 0
+        self.stage_seconds = {s: 0.0 for s in STAGES}
+        self.seconds = 0.0
+        self.radius_scene = scene_radius(scene)
+
+    # -- one pass ----------------------------------------------------------------------
+    def _eye_points(self, i: int) -> list[GatherPoints]:
+        s = self.settings
+        if s.layout == "multi":
+            return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_A), s.max_depth),
+                    trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_B), s.max_depth)]
+        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_SINGLE), s.max_depth)]
+
+    def _chains_of(self, point_index: int) -> list[int]:
+        """Which chains gather at eye point ``point_index`` (A = 0, B = 1)."""
+        if self.settings.layout == "multi":
+            return [0] if point_index == 0 else [1, 2, 3, 4]
+        return list(range(self.n_chains))
+
+    def _initial_radii(self, points: list[GatherPoints], photon_p: mi.Point3f) -> list[mi.Float]:
+        s = self.settings
+        r_lo, r_hi = s.radius_min_frac * self.radius_scene, s.radius_max_frac * self.radius_scene
+        r = knn_radius(points[0], photon_p, s.knn, r_lo, r_hi)
+        for other in points[1:]:  # where A found no surface, use B's
+            missing = np.isnan(r)
+            if missing.any():
+                r[missing] = knn_radius(other, photon_p, s.knn, r_lo, r_hi)[missing]
+        missing = np.isnan(r)
+        fallback = float(np.median(r[~missing])) if (~missing).any() else r_hi
+        r[missing] = fallback
+        return [mi.Float((r * scale).astype(np.float32)) for scale in self.scales]
+
+    def run_pass(self) -> None:
+        """Render pass ``passes_done + 1`` and fold it into the estimates."""
+        s = self.settings
+        i = self.passes_done + 1
+
+        def clock() -> float:
+            dr.sync_thread()  # kernels run asynchronously: wait so each stage is timed right
+            return time.perf_counter()
+
+        t0 = clock()
+        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth)
+        t1 = clock()
+        points = self._eye_points(i)
+        t2 = clock()
+        if i == 1:
+            self.controller.start(self._initial_radii(points, photon_map.p))
+        radii = self.controller.radii()
+        cell = self._cell_size(radii)
+        grid = build_grid(photon_map, cell)
+        t3 = clock()
+        results = []
+        for j, p in enumerate(points):
+            chains = self._chains_of(j)
+            results.append((chains, gather(p, [radii[c] for c in chains], grid, s.kernel)))
+        t4 = clock()
+
+        inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
+        for j, (chains, res) in enumerate(results):
+            p = points[j]
+            for slot, c in enumerate(chains):
+                estimate = p.emitted + dr.select(p.found, p.beta * res.flux[slot] * inv_j, 0.0)
+                self.means[c].add(estimate)
+        for p in points:
+            self.albedo.add(p.albedo)
+            self.normal.add(p.normal)
+            self.depth.add(p.depth)
+        self.controller.update(i, results)
+        t5 = clock()
+
+        for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
+            self.stage_seconds[name] += dt
+        self.seconds += t5 - t0
+        self.passes_done = i
+
+    def _cell_size(self, radii: list[mi.Float]) -> float:
+        """Grid cell edge: a high quantile of the largest radius in use. Most gather
+        points then visit at most 3x3x3 cells (2x2x2 for the smaller chains) while the
+        few with larger radii visit more; measured faster than 2x that edge, which makes
+        every small-radius point scan photons far outside its disc."""
+        r_max = np.asarray(radii[-1])
+        r_max = r_max[np.isfinite(r_max) & (r_max > 0)]
+        if r_max.size == 0:
+            return max(self.radius_scene * 1e-3, 1e-6)
+        return float(max(np.quantile(r_max, 0.9), r_max.max() / 16.0, 1e-7))
+
+    # -- the loop ----------------------------------------------------------------------
+    def run(self, on_pass: Callable[["Renderer"], None] | None = None) -> RenderResult:
+        """Render until the pass count or the time budget is reached; Ctrl-C stops after
+        the passes completed so far (the interrupted pass is discarded)."""
+        s = self.settings
+        stopped = "complete"
+        start = time.perf_counter()
+        try:
+            while True:
+                if s.passes is not None and self.passes_done >= s.passes:
+                    break
+                if s.time_budget is not None and self.passes_done > 0:
+                    elapsed = time.perf_counter() - start
+                    per_pass = self.seconds / self.passes_done
+                    if elapsed + per_pass > s.time_budget:
+                        stopped = "time budget" if s.passes is None else "time budget before pass count"
+                        break
+                self.run_pass()
+                if on_pass is not None:
+                    on_pass(self)
+        except KeyboardInterrupt:
+            stopped = "interrupted"
+            if self.passes_done == 0:
+                raise
+        return self.result(stopped)
+
+    def result(self, stopped: str = "complete") -> RenderResult:
+        """The estimates after the passes completed so far."""
+        h, w = self.height, self.width
+        means, variances = zip(*(m.numpy(h, w) for m in self.means))
+        radii = np.stack([np.asarray(r, np.float32).reshape(h, w) for r in self.controller.radii()])
+        albedo = np.asarray(self.albedo.mean).reshape(3, h, w).transpose(1, 2, 0)
+        normal = np.asarray(self.normal.mean).reshape(3, h, w).transpose(1, 2, 0)
+        depth = np.asarray(self.depth.mean).reshape(h, w)
+        s = self.settings
+        header = {
+            B.H_VERSION: B.SCHEMA_VERSION, B.H_KERNEL: s.kernel, B.H_PASSES: self.passes_done,
+            B.H_PHOTONS: s.photons, B.H_ALPHA: s.alpha, B.H_KNN: s.knn, B.H_SEED: s.seed,
+            B.H_SCENE: self.scene_name, B.H_SECONDS: self.seconds, B.H_STOPPED: stopped,
+            "ppmrecon.layout": s.layout, "ppmrecon.max_depth": s.max_depth,
+        }
+        header.update(self.controller.header())
+        for k, v in self.stage_seconds.items():
+            header[f"ppmrecon.seconds.{k}"] = v
+        return RenderResult(
+            estimates=np.stack(means).astype(np.float32), variances=np.stack(variances).astype(np.float32),
+            radii=radii.astype(np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
+            normal=np.ascontiguousarray(normal, np.float32), depth=np.ascontiguousarray(depth, np.float32),
+            passes=self.passes_done, seconds=self.seconds, stage_seconds=dict(self.stage_seconds),
+            stopped=stopped, header=header)
