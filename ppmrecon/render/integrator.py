@@ -91,6 +91,7 @@ class RenderResult:
     stage_seconds: dict[str, float]
     stopped: str
     header: dict[str, Any]
+    nonfinite: int = 0
 
     def buffer_file(self) -> B.BufferFile:
         """The five-chain result as a buffer file (``multi`` or ``shared`` layout)."""
@@ -146,6 +147,7 @@ class Renderer:
         self.normal = PlainMean(dr.zeros(mi.Normal3f, self.n_pixels))
         self.depth = PlainMean(dr.zeros(mi.Float, self.n_pixels))
         self.passes_done = 0
+        self.nonfinite = 0
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
@@ -208,7 +210,11 @@ class Renderer:
             p = points[j]
             for slot, c in enumerate(chains):
                 estimate = p.emitted + dr.select(p.found, p.beta * res.flux[slot] * inv_j, 0.0)
-                self.means[c].add(estimate)
+                # A NaN/Inf from a degenerate BSDF sample must not poison the running mean:
+                # zero it and count it, the count goes into the header.
+                finite = dr.all(dr.isfinite(estimate))
+                self.nonfinite += int(dr.count(~finite)[0]) if dr.width(finite) else 0
+                self.means[c].add(dr.select(finite, estimate, 0.0))
         for p in points:
             self.albedo.add(p.albedo)
             self.normal.add(p.normal)
@@ -272,6 +278,7 @@ class Renderer:
             B.H_PHOTONS: s.photons, B.H_ALPHA: s.alpha, B.H_KNN: s.knn, B.H_SEED: s.seed,
             B.H_SCENE: self.scene_name, B.H_SECONDS: self.seconds, B.H_STOPPED: stopped,
             "ppmrecon.layout": s.layout, "ppmrecon.max_depth": s.max_depth,
+            "ppmrecon.nonfinite_samples": self.nonfinite,
         }
         header.update(self.controller.header())
         for k, v in self.stage_seconds.items():
@@ -281,4 +288,4 @@ class Renderer:
             radii=radii.astype(np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
             normal=np.ascontiguousarray(normal, np.float32), depth=np.ascontiguousarray(depth, np.float32),
             passes=self.passes_done, seconds=self.seconds, stage_seconds=dict(self.stage_seconds),
-            stopped=stopped, header=header)
+            stopped=stopped, header=header, nonfinite=self.nonfinite)

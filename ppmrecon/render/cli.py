@@ -1,0 +1,155 @@
+"""``ppmrecon-render``: render a scene with multi-bandwidth progressive photon mapping.
+
+Writes one buffer file (five bandwidth estimates, variances, radii, G-buffers; SPEC
+section 2), or with ``--single`` the conventional single-bandwidth image as a plain
+R,G,B EXR. Ctrl-C or the end of a ``--time`` budget writes the passes completed so far
+and records why in the header (``ppmrecon.stopped``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from .. import buffers as B
+from ..backend import VARIANTS, choose_variant
+from ..cli_common import ArgumentParser, Progress, positive_float, positive_int, run_main
+from ..errors import UsageError
+from .kernels import KERNELS
+
+PROG = "ppmrecon-render"
+DEFAULT_PASSES = 16
+DEFAULT_MAX_DEPTH = 8
+
+
+def _resolution(text: str) -> tuple[int, int] | int:
+    m = re.fullmatch(r"\s*(\d+)\s*(?:[xX]\s*(\d+))?\s*", text)
+    if not m:
+        raise argparse.ArgumentTypeError(f"'{text}' is not WxH (e.g. 256x256) or a width")
+    w = int(m.group(1))
+    h = int(m.group(2)) if m.group(2) else None
+    if w <= 0 or (h is not None and h <= 0):
+        raise argparse.ArgumentTypeError(f"resolution must be positive, got '{text}'")
+    return (w, h) if h is not None else w
+
+
+def build_parser() -> ArgumentParser:
+    from .controllers import CONTROLLERS
+
+    p = ArgumentParser(
+        prog=PROG,
+        description="Render a Mitsuba 3 / Mitsuba 0.6 scene (or a built-in one) with "
+                    "multi-bandwidth progressive photon mapping into a buffer EXR.",
+        epilog="Built-in scenes: see --list-scenes. Example: ppmrecon-render --passes 64 "
+               "--output cbox.exr && ppmrecon-denoise cbox.exr")
+    p.add_argument("scene", nargs="?", default=None,
+                   help="built-in scene name or path to a Mitsuba 3/0.6 XML (default: the built-in default scene)")
+    p.add_argument("--method", default="sppm", choices=sorted(CONTROLLERS),
+                   help="bandwidth controller (default: sppm)")
+    budget = p.add_mutually_exclusive_group()
+    budget.add_argument("--passes", type=positive_int, default=None,
+                        help=f"number of passes (default: {DEFAULT_PASSES})")
+    budget.add_argument("--time", type=positive_float, default=None, metavar="SECONDS",
+                        help="render for this wall-clock budget instead of a pass count")
+    p.add_argument("--photons", type=positive_int, default=1 << 17, metavar="J",
+                   help="photons emitted per pass (default: 131072)")
+    p.add_argument("--resolution", type=_resolution, default=None, metavar="WxH",
+                   help="film size; a single width keeps the scene's aspect ratio")
+    p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
+    p.add_argument("--kernel", default="constant", choices=KERNELS, help="density kernel (default: constant)")
+    p.add_argument("--max-depth", type=positive_int, default=None, metavar="D",
+                   help=f"maximum path depth for photons and eye paths (default: the scene's, else {DEFAULT_MAX_DEPTH})")
+    p.add_argument("--alpha", type=float, default=2.0 / 3.0, help="SPPM radius reduction alpha (default: 2/3)")
+    p.add_argument("--knn", type=positive_int, default=20,
+                   help="k of the k-NN initial bandwidth (default: 20)")
+    p.add_argument("--single", action="store_true",
+                   help="render the conventional single-bandwidth image (second-smallest initial "
+                        "bandwidth, one eye path) into a plain R,G,B EXR")
+    p.add_argument("--shared-hit-point", action="store_true",
+                   help="diagnostic: gather all five chains at one hit point (no decorrelation)")
+    p.add_argument("--output", "-o", type=Path, default=None, metavar="FILE.exr",
+                   help="output EXR (default: <scene>_<method>[_single].exr in the current folder)")
+    p.add_argument("--variant", choices=VARIANTS, default=None,
+                   help="force a Mitsuba variant (default: cuda_ad_rgb if a GPU is usable, else llvm_ad_rgb)")
+    p.add_argument("--list-scenes", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+    return p
+
+
+def _default_output(scene_name: str, method: str, single: bool) -> Path:
+    stem = Path(scene_name).stem if scene_name.endswith(".xml") else scene_name
+    return Path(f"{stem}_{method}{'_single' if single else ''}.exr")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .scene import DEFAULT_SCENE, builtin_scenes
+
+    if args.list_scenes:
+        for name, path in builtin_scenes().items():
+            mark = " (default)" if name == DEFAULT_SCENE else ""
+            print(f"{name}{mark}\t{path}")
+        return 0
+    if not 0.0 < args.alpha < 1.0:
+        raise UsageError(f"--alpha must lie in (0, 1), got {args.alpha}")
+    if args.single and args.shared_hit_point:
+        raise UsageError("--single and --shared-hit-point exclude each other")
+    if args.output is not None:
+        if args.output.suffix.lower() != ".exr":
+            raise UsageError(f"--output {args.output}: the output must be an .exr file")
+        if not args.output.parent.exists():
+            raise UsageError(f"--output {args.output}: folder '{args.output.parent}' does not exist")
+
+    variant = choose_variant(args.variant)
+    from .integrator import Renderer, RenderSettings
+    from .scene import load_scene
+
+    loaded = load_scene(args.scene, resolution=args.resolution)
+    max_depth = args.max_depth or (loaded.max_depth if loaded.max_depth and 0 < loaded.max_depth <= 64 else DEFAULT_MAX_DEPTH)
+    layout = "single" if args.single else ("shared" if args.shared_hit_point else "multi")
+    settings = RenderSettings(
+        method=args.method, passes=args.passes if args.passes else (None if args.time else DEFAULT_PASSES),
+        time_budget=args.time, photons=args.photons, seed=args.seed, kernel=args.kernel,
+        max_depth=max_depth, alpha=args.alpha, knn=args.knn, layout=layout)
+    output = args.output or _default_output(loaded.name, args.method, args.single)
+
+    renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)
+    progress = Progress(f"{PROG} {loaded.name} {renderer.width}x{renderer.height} {args.method}",
+                        total=settings.passes, quiet=args.quiet)
+
+    def on_pass(r: Renderer) -> None:
+        rate = r.passes_done * settings.photons / max(r.seconds, 1e-9)
+        progress.update(r.passes_done, force=r.passes_done == settings.passes,
+                        photons_per_s=f"{rate / 1e6:.2f}M")
+
+    result = renderer.run(on_pass)
+    progress.close()
+    result.header["ppmrecon.variant"] = variant
+    if result.nonfinite:
+        sys.stderr.write(f"{PROG}: warning: {result.nonfinite} non-finite per-pass pixel estimates were "
+                         f"set to zero (recorded as ppmrecon.nonfinite_samples)\n")
+    if args.single:
+        B.write_rgb(output, result.estimates[0], header=result.header)
+    else:
+        B.write_buffers(output, result.buffer_file())
+    note = ""
+    if result.stopped != "complete":
+        note = f" ({result.stopped} after {result.passes} passes)"
+    if not args.quiet:
+        stages = ", ".join(f"{k} {v:.2f}s" for k, v in result.stage_seconds.items())
+        sys.stderr.write(f"{PROG}: wrote {output}: {result.passes} passes in {result.seconds:.2f}s{note} [{stages}]\n")
+    return 130 if result.stopped == "interrupted" else 0
+
+
+def entry() -> None:
+    """Console-script entry point."""
+    raise SystemExit(run_main(PROG, main))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    entry()
