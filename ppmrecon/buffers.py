@@ -169,6 +169,12 @@ def _header_value(key: str, value: Any) -> Any:
     raise UsageError(f"header attribute '{key}': unsupported type {type(value).__name__}")
 
 
+def _default_mode() -> int:
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
               header: Mapping[str, Any] | None = None) -> None:
     """Write ``channels`` (name -> (H, W) array) as a float32 ZIP scanline EXR, atomically.
@@ -203,6 +209,7 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
     try:
         with OpenEXR.File(hdr, data) as f:
             f.write(tmp)
+        os.chmod(tmp, _default_mode())  # mkstemp makes 0600; outputs get the usual umask
         os.replace(tmp, path)
     except BaseException:
         try:

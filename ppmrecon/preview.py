@@ -14,6 +14,8 @@ from typing import Sequence
 
 import numpy as np
 
+from .buffers import _default_mode
+
 
 def to_srgb8(rgb: np.ndarray, exposure: float = 1.0) -> np.ndarray:
     """Clamp, apply the sRGB transfer curve (IEC 61966-2-1) and quantise to uint8."""
@@ -37,6 +39,7 @@ def write_png(path: str | os.PathLike, rgb8: np.ndarray) -> None:
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(png)
+        os.chmod(tmp, _default_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
