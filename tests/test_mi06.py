@@ -325,9 +325,9 @@ SCENE_06 = """<?xml version="1.0"?>
 
 @pytest.fixture
 def scene06(tmp_path):
-    import mitsuba as mi  # the variant is set by load_scene's first use below; write with numpy
-    from ppmrecon.backend import choose_variant
-    choose_variant("llvm_ad_rgb")
+    from ppmrecon.render.scene import ensure_variant
+    ensure_variant()
+    import mitsuba as mi
     folder = tmp_path / "lit"
     folder.mkdir()
     img = np.zeros((8, 8, 3), np.uint8)

@@ -131,9 +131,9 @@ def test_bad_resolution_is_a_scene_error(bad):
 # --------------------------------------------------------------------------- files
 
 def test_relative_files_resolve_against_the_scene_folder(tmp_path, monkeypatch):
+    from ppmrecon.render.scene import ensure_variant
+    ensure_variant()
     import mitsuba as mi
-    from ppmrecon.backend import choose_variant
-    choose_variant("llvm_ad_rgb")
     sub = tmp_path / "scenes" / "a"
     sub.mkdir(parents=True)
     mesh = mi.load_dict({"type": "rectangle"})
@@ -266,3 +266,9 @@ def test_file_integrator_is_replaced_by_path_keeping_max_depth(tmp_path):
     ls = load_scene(path)
     assert ls.max_depth is None and ls.integrator_params == {}
     assert isinstance(ls.scene.integrator(), mi.Integrator)
+
+
+def test_integrator_max_depth_from_a_default_parameter(tmp_path):
+    path = scene_file(tmp_path, '<default name="depth" value="6"/><integrator type="path">'
+                                '<integer name="max_depth" value="$depth"/></integrator>' + LIT_SPHERE)
+    assert load_scene(path).max_depth == 6

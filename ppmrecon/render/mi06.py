@@ -36,7 +36,7 @@ from typing import Callable, Iterator, NoReturn
 
 import numpy as np
 
-from .scene import SceneError, describe
+from .scene import SceneError, describe, ensure_variant
 
 # --------------------------------------------------------------------------- vocabulary
 
@@ -95,7 +95,6 @@ IOR_TABLE: dict[str, float] = {
     "amber": 1.55, "pet": 1.575, "diamond": 2.419,
 }
 
-_COLOR_TAGS = ("rgb", "srgb", "spectrum")
 
 
 # --------------------------------------------------------------------------- machinery
@@ -218,9 +217,7 @@ def _hex_rgb(text: str) -> list[float] | None:
 def _spectrum_to_rgb(wavelengths: list[float], values: list[float]) -> list[float]:
     """Linear sRGB of a sampled spectrum as 0.6's RGB mode computed it (CIE 1931,
     normalised by the integral of y-bar, XYZ -> sRGB without chromatic adaptation)."""
-    from ..backend import active_variant, choose_variant
-    if active_variant() is None:
-        choose_variant()
+    ensure_variant()
     import mitsuba as mi
     rgb = mi.spectrum_list_to_srgb(wavelengths, values, False, False)
     return [float(rgb[i]) for i in range(3)]
@@ -341,10 +338,8 @@ def spectrum_values(root: ET.Element, ctx: Context) -> None:
                 fname = ctx.folder / fname
             if not fname.exists():
                 ctx.refuse(el, f"refers to '{el.get('filename')}', which does not exist")
-            import mitsuba as mi  # the variant is active: _spectrum_to_rgb is called below
-            from ..backend import active_variant, choose_variant
-            if active_variant() is None:
-                choose_variant()
+            ensure_variant()
+            import mitsuba as mi
             wl, vs = mi.spectrum_from_file(str(fname))
             rgb = _spectrum_to_rgb(list(wl), list(vs))
             del el.attrib["filename"]
@@ -464,9 +459,7 @@ def conductor_ext_eta(root: ET.Element, ctx: Context) -> None:
                 vals = [v / ext for v in _floats(node.get("value", ""))]
                 node.set("value", _fmt(vals))
             continue
-        from ..backend import active_variant, choose_variant
-        if active_variant() is None:
-            choose_variant()
+        ensure_variant()
         import mitsuba as mi
         try:
             cond = mi.load_dict({"type": "conductor", "material": material})

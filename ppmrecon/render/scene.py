@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +38,6 @@ MEDIUM_TAGS = ("medium", "phase", "subsurface")
 FILE_PARAMS = ("filename",)
 _MAX_DEPTH_NAMES = ("max_depth", "maxDepth")
 _HIDE_NAMES = ("hide_emitters", "hideEmitters")
-_INTEGER_TAGS = ("integer",)
 _PROPERTY_TAGS = ("integer", "float", "boolean", "string")
 
 
@@ -110,11 +110,14 @@ def parse_version(text: str | None, label: str) -> tuple[int, ...]:
         raise SceneError(f"{label}: unreadable scene version '{text}'") from None
 
 
-def _value(el: ET.Element) -> Any:
-    """Python value of a property element (integer/float/boolean/string), else its value text."""
+def _value(el: ET.Element, defaults: dict[str, str] | None = None) -> Any:
+    """Python value of a property element (integer/float/boolean/string), else its value
+    text; ``$name`` values are looked up in the file's ``<default>`` elements."""
     v = el.get("value")
     if v is None:
         return None
+    if v.startswith("$") and defaults and v[1:] in defaults:
+        v = defaults[v[1:]]
     try:
         if el.tag == "integer":
             return int(v)
@@ -125,6 +128,21 @@ def _value(el: ET.Element) -> Any:
     except ValueError:
         return v
     return v
+
+
+def ensure_variant() -> None:
+    """Activate a Mitsuba variant unless one is already active (ours or the caller's)."""
+    from ..backend import active_variant, choose_variant
+    if active_variant() is not None:
+        return
+    mi = sys.modules.get("mitsuba")
+    if mi is not None:
+        try:
+            if mi.variant() is not None:
+                return
+        except Exception:  # pragma: no cover - a broken import: let choose_variant say why
+            pass
+    choose_variant()
 
 
 def _parent_map(root: ET.Element) -> dict[ET.Element, ET.Element]:
@@ -160,6 +178,7 @@ def take_integrator(root: ET.Element) -> tuple[int | None, dict[str, Any]]:
     flattened: the outermost type is ``type``, inner types are listed in ``inner_types``.
     """
     found = [el for el in root if el.tag == "integrator"]
+    defaults = _defaults(root)
     max_depth: int | None = None
     hide: bool | None = None
     params: dict[str, Any] = {}
@@ -172,7 +191,7 @@ def take_integrator(root: ET.Element) -> tuple[int | None, dict[str, Any]]:
             for prop in integ:
                 if prop.tag not in _PROPERTY_TAGS or prop.get("name") is None:
                     continue
-                name, value = prop.get("name"), _value(prop)
+                name, value = prop.get("name"), _value(prop, defaults)
                 if name in _MAX_DEPTH_NAMES and max_depth is None:
                     try:
                         max_depth = int(value)
@@ -383,9 +402,7 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
         check_files(root, folder, label)
         _absolutise_files(root, folder)
 
-    from ..backend import active_variant, choose_variant
-    if active_variant() is None:
-        choose_variant()
+    ensure_variant()
     import mitsuba as mi
 
     xml = ET.tostring(root, encoding="unicode")
