@@ -272,3 +272,16 @@ def test_integrator_max_depth_from_a_default_parameter(tmp_path):
     path = scene_file(tmp_path, '<default name="depth" value="6"/><integrator type="path">'
                                 '<integer name="max_depth" value="$depth"/></integrator>' + LIT_SPHERE)
     assert load_scene(path).max_depth == 6
+
+
+def test_take_integrator_keeps_depth_and_hidden_emitters_only():
+    import xml.etree.ElementTree as ET
+    from ppmrecon.render.scene import take_integrator
+    root = ET.fromstring('<scene version="3.0.0"><integrator type="sppm"><integer name="maxDepth" value="65"/>'
+                         '<boolean name="hideEmitters" value="true"/><integer name="photonCount" value="100"/>'
+                         '<float name="initialRadius" value="0.01"/></integrator></scene>')
+    max_depth, params = take_integrator(root)
+    assert max_depth == 65 and params == {"type": "sppm", "photonCount": 100, "initialRadius": 0.01}
+    (integ,) = root.findall("integrator")
+    assert integ.get("type") == "path"
+    assert {c.get("name"): c.get("value") for c in integ} == {"max_depth": "65", "hide_emitters": "true"}

@@ -88,7 +88,8 @@ def mitsuba_error_line(exc: BaseException) -> str:
     positions in the regenerated XML string (they would not match the user's file)."""
     msg = str(exc).strip() or type(exc).__name__
     msg = re.sub(r"\[[\w.]+\.(?:cpp|h|hpp|py):\d+\]\s*", "", msg)
-    msg = re.sub(r"(?:At|While loading) string \(line \d+, col \d+\):\s*", "", msg)
+    msg = re.sub(r"(?:Error while loading|While loading|At) string \(line \d+, col \d+\):\s*", "", msg,
+                 flags=re.IGNORECASE)
     msg = re.sub(r"\[(\w+)\]\s+", r"\1: ", msg)  # "[OBJMesh] Error ..." -> "OBJMesh: Error ..."
     return one_line(msg)
 
