@@ -55,3 +55,42 @@ def side_by_side(images: Sequence[np.ndarray], gap: int = 4, exposure: float = 1
             parts.append(np.full((h, gap, 3), 255, np.uint8))
         parts.append(to_srgb8(img, exposure))
     return np.concatenate(parts, axis=1)
+
+
+def load_for_preview(path: str | os.PathLike, layer: str = "z1") -> np.ndarray:
+    """An (H, W, 3) image from a buffer file (its ``layer``) or a plain R,G,B EXR."""
+    from . import buffers as B
+
+    channels, _ = B.read_channels(path)
+    if all(c in channels for c in B.RGB):
+        return np.stack([channels[c] for c in B.RGB], -1)
+    names = [f"{layer}.{c}" for c in B.RGB]
+    if all(n in channels for n in names):
+        return np.stack([channels[n] for n in names], -1)
+    raise B.MissingLayerError(path, f"no R,G,B or {layer}.R,G,B channels to preview", channel=names[0])
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m ppmrecon.preview OUT.png IN.exr [IN.exr ...]``: side-by-side sRGB PNG."""
+    from .cli_common import ArgumentParser
+
+    p = ArgumentParser(prog="python -m ppmrecon.preview",
+                       description="Write EXR images side by side as one sRGB PNG "
+                                   "(buffer files show their ~z^1 layer unless --layer).")
+    p.add_argument("output", type=Path, help="PNG to write")
+    p.add_argument("inputs", type=Path, nargs="+", help="EXR files (same size)")
+    p.add_argument("--layer", default="z1", help="layer shown for buffer files (default: z1)")
+    p.add_argument("--exposure", type=float, default=1.0, help="linear scale before sRGB (default: 1)")
+    args = p.parse_args(argv)
+    images = [load_for_preview(f, args.layer) for f in args.inputs]
+    if len({img.shape for img in images}) != 1:
+        from .errors import UsageError
+        raise UsageError(f"{args.output}: inputs differ in size: " + ", ".join(f"{f} {i.shape[1]}x{i.shape[0]}" for f, i in zip(args.inputs, images)))
+    write_png(args.output, side_by_side(images, exposure=args.exposure))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    from .cli_common import run_main
+
+    raise SystemExit(run_main("ppmrecon.preview", main))
