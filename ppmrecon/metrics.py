@@ -1,0 +1,43 @@
+"""Error metrics (SPEC section 7).
+
+relMSE (Rousselle et al. 2011, as used by paper 002 and its public code): per pixel
+
+    relMSE_c = mean_l (yhat_{c,l} - y_{c,l})^2 / ((mean_l y_{c,l})^2 + 0.01)
+
+averaged over pixels. Works on numpy arrays (computed in float64, returns a float) and
+on torch tensors (keeps dtype and autograd, returns a 0-d tensor). The colour channels
+lie on ``channel_axis``: -1 for (H, W, 3) images, 1 for (B, 3, H, W) tensors.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+RELMSE_EPS = 0.01
+
+
+def _check(est: Any, ref: Any) -> None:
+    if tuple(est.shape) != tuple(ref.shape):
+        raise ValueError(f"estimate and reference shapes differ: {tuple(est.shape)} vs {tuple(ref.shape)}")
+
+
+def relmse_map(est: Any, ref: Any, channel_axis: int = -1) -> Any:
+    """Per-pixel relMSE (the channel axis reduced away)."""
+    _check(est, ref)
+    if isinstance(est, torch.Tensor) or isinstance(ref, torch.Tensor):
+        est, ref = torch.as_tensor(est), torch.as_tensor(ref)
+        sq = (est - ref).square().mean(dim=channel_axis)
+        return sq / (ref.mean(dim=channel_axis).square() + RELMSE_EPS)
+    est = np.asarray(est, dtype=np.float64)
+    ref = np.asarray(ref, dtype=np.float64)
+    sq = np.square(est - ref).mean(axis=channel_axis)
+    return sq / (np.square(ref.mean(axis=channel_axis)) + RELMSE_EPS)
+
+
+def relmse(est: Any, ref: Any, channel_axis: int = -1) -> Any:
+    """relMSE averaged over all pixels: a float for numpy input, a 0-d tensor for torch."""
+    m = relmse_map(est, ref, channel_axis)
+    return m.mean() if isinstance(m, torch.Tensor) else float(m.mean())

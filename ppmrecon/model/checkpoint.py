@@ -1,0 +1,135 @@
+"""Model checkpoints: weights + everything needed to rebuild and feed the network.
+
+A checkpoint is a ``torch.save`` dict of plain types and tensors only, so it loads with
+``torch.load(weights_only=True)`` (no pickled code is ever executed):
+
+    format          "ppmrecon-kpn"
+    format_version  FORMAT_VERSION
+    schema_version  the buffer-file schema the features were built from (buffers.SCHEMA_VERSION)
+    preset          the full architecture (Preset.to_dict())
+    features        the feature settings (FeatureConfig.to_dict())
+    state_dict      the weights
+    meta            free-form training information (epochs, validation relMSE, ...)
+
+Every problem on load (missing, corrupt, not a checkpoint, newer format, other schema,
+weights that do not fit the architecture) is one :class:`UsageError` naming the file.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import tempfile
+from pathlib import Path
+from typing import Any, Mapping, NamedTuple
+
+import torch
+
+from ..buffers import SCHEMA_VERSION, _default_mode
+from ..errors import UsageError
+from .features import FeatureConfig
+from .kpn import KPN, Preset, build
+
+FORMAT = "ppmrecon-kpn"
+FORMAT_VERSION = 1
+#: A shipped default model is picked up from here when it exists.
+DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default.pt"
+_ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
+
+
+class Checkpoint(NamedTuple):
+    model: KPN
+    meta: dict[str, Any]
+
+
+def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any] | None = None) -> None:
+    """Write ``model`` (and ``meta``: str/int/float/bool/list/dict values) atomically."""
+    path = Path(path)
+    payload = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "schema_version": SCHEMA_VERSION,
+        "preset": model.preset.to_dict(),
+        "features": model.features.to_dict(),
+        "state_dict": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
+        "meta": dict(meta or {}),
+    }
+    folder = path.parent if str(path.parent) else Path(".")
+    if not folder.is_dir():
+        raise UsageError(f"{path}: output folder '{folder}' does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.chmod(tmp, _default_mode())  # mkstemp makes 0600; like other outputs, honour the umask
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def init_checkpoint(path: str | os.PathLike, preset: Preset | str = "tiny",
+                    features: FeatureConfig = FeatureConfig(), seed: int = 0) -> KPN:
+    """Write a freshly initialised (untrained) model to ``path`` and return it."""
+    torch.manual_seed(seed)
+    model = build(preset, features)
+    save_checkpoint(path, model, {"trained": False, "seed": seed})
+    return model
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Checkpoint:
+    """Load and validate a checkpoint written by :func:`save_checkpoint`."""
+    path = Path(path)
+
+    def fail(problem: str) -> UsageError:
+        return UsageError(f"{path}: {problem}")
+
+    if not path.exists():
+        raise fail("no such model checkpoint")
+    if path.is_dir():
+        raise fail("is a folder, expected a model checkpoint (.pt)")
+    with open(path, "rb") as f:
+        magic = f.read(4)
+    if magic != _ZIP_MAGIC:
+        raise fail("not a model checkpoint (not a PyTorch zip archive)")
+    try:
+        data = torch.load(path, map_location=map_location, weights_only=True)
+    except pickle.UnpicklingError:
+        raise fail("holds objects other than tensors and plain values; refusing to unpickle it "
+                   "(not a ppmrecon model checkpoint)") from None
+    except Exception as exc:  # zip/stream errors: truncated or damaged file
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise fail(f"corrupt or truncated model checkpoint ({reason.split(':')[0][:100]})") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise fail("not a ppmrecon model checkpoint (no 'ppmrecon-kpn' format marker)")
+    version = data.get("format_version")
+    if not isinstance(version, int):
+        raise fail(f"unreadable checkpoint format version {version!r}")
+    if version > FORMAT_VERSION:
+        raise fail(f"checkpoint format {version} is newer than this ppmrecon understands ({FORMAT_VERSION}); upgrade ppmrecon")
+    schema = data.get("schema_version")
+    if schema != SCHEMA_VERSION:
+        raise fail(f"model was trained on buffer schema {schema!r}, this ppmrecon writes schema {SCHEMA_VERSION}; "
+                   "retrain it with ppmrecon-train")
+    for key, kind in (("preset", dict), ("features", dict), ("state_dict", dict)):
+        if not isinstance(data.get(key), kind):
+            raise fail(f"checkpoint lacks '{key}'")
+    try:
+        preset = Preset.from_dict(data["preset"])
+        features = FeatureConfig.from_dict(data["features"])
+    except (TypeError, ValueError) as exc:
+        raise fail(f"invalid architecture in checkpoint ({exc})") from None
+    model = KPN(preset, features)
+    try:
+        model.load_state_dict(data["state_dict"], strict=True)
+    except RuntimeError as exc:
+        first = str(exc).strip().splitlines()
+        detail = " ".join(line.strip() for line in first[:3])
+        raise fail(f"weights do not match the '{preset.name}' architecture ({detail[:200]})") from None
+    if not all(torch.isfinite(p).all() for p in model.parameters()):
+        raise fail("weights contain NaN/Inf")
+    meta = data.get("meta") if isinstance(data.get("meta"), dict) else {}
+    return Checkpoint(model.eval(), meta)

@@ -1,0 +1,154 @@
+"""``ppmrecon-denoise``: buffer file -> consistent learned reconstruction (paper 002 Eq. 6).
+
+    ppmrecon-denoise INPUT.exr [--model CKPT] [--output OUT.exr] [--tile N]
+                     [--weights-layers] [--device cpu|cuda] [--threads N] [--quiet]
+    ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
+
+The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
+written atomically; ``--weights-layers`` adds ``weight.z1 .. weight.z4``, the summed
+combination weight of each ~z^j (paper 002 Fig. 6). Without ``--model`` the shipped
+default model is used if the package has one (``ppmrecon/data/models/default.pt``).
+``--init-checkpoint`` writes an untrained network, for trying the pipeline end to end
+before a model has been trained.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import torch
+
+from ..buffers import ESTIMATES, read_buffers, write_rgb
+from ..cli_common import ArgumentParser, Progress, positive_int, run_main
+from ..errors import UsageError
+from . import checkpoint
+from .features import FeatureConfig
+from .infer import denoise, resolve_precision
+from .kpn import load_preset, parameter_count, preset_names
+
+PROG = "ppmrecon-denoise"
+DEFAULT_PRESET = "tiny"        # the CPU default: see configs/models/tiny.json and the benchmark
+WEIGHT_LAYER = "weight"
+H_DENOISER = "ppmrecon.denoiser"
+H_MODEL = "ppmrecon.model"
+H_DENOISE_SECONDS = "ppmrecon.denoise_seconds"
+
+NO_MODEL_HINT = ("no model given and no default model is installed; pass --model CKPT "
+                 "(train one with `ppmrecon-train`, or make an untrained one with "
+                 "`ppmrecon-denoise --init-checkpoint CKPT`)")
+
+
+def build_parser() -> ArgumentParser:
+    p = ArgumentParser(prog=PROG, description="Denoise a ppmrecon buffer file with the consistent "
+                       "kernel-predicting combiner (Choi & Moon 2021).")
+    p.add_argument("input", nargs="?", metavar="INPUT.exr", help="buffer file written by ppmrecon-render")
+    p.add_argument("--model", metavar="CKPT", help="model checkpoint (.pt) from ppmrecon-train")
+    p.add_argument("--output", "-o", metavar="OUT.exr", help="output RGB EXR (default: INPUT_denoised.exr)")
+    p.add_argument("--tile", type=positive_int, metavar="N",
+                   help="tile side in pixels (default: automatic, bounded memory)")
+    p.add_argument("--weights-layers", action="store_true",
+                   help="also write weight.z1..weight.z4, the summed weight of each ~z^j")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default: cpu)")
+    p.add_argument("--threads", type=positive_int, metavar="N", help="CPU threads for torch")
+    p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
+                   help="network precision; auto = bfloat16 on CPUs with native bf16 (AMX/AVX512-BF16), "
+                        "else float32. The combiner is always float32")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
+    g = p.add_argument_group("making an untrained model")
+    g.add_argument("--init-checkpoint", metavar="CKPT",
+                   help="write a freshly initialised model to CKPT and exit (takes no INPUT)")
+    g.add_argument("--preset", default=DEFAULT_PRESET, metavar="NAME",
+                   help=f"architecture for --init-checkpoint: {', '.join(preset_names())} or a .json "
+                        f"file (default: {DEFAULT_PRESET})")
+    g.add_argument("--seed", type=int, default=0, help="initialisation seed (default: 0)")
+    g.add_argument("--radius-features", action="store_true", help="network also sees the 5 bandwidths")
+    g.add_argument("--pass-feature", action="store_true", help="network also sees the pass count")
+    return p
+
+
+def default_output(path: Path) -> Path:
+    """``scene.exr`` -> ``scene_denoised.exr`` in the same folder."""
+    return path.with_name(f"{path.stem}_denoised.exr")
+
+
+def _init_checkpoint(args) -> int:
+    features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature)
+    model = checkpoint.init_checkpoint(args.init_checkpoint, load_preset(args.preset), features, seed=args.seed)
+    if not args.quiet:
+        print(f"{args.init_checkpoint}: untrained '{model.preset.name}' model, "
+              f"{parameter_count(model):,} parameters, {features.n_channels} input channels")
+    return 0
+
+
+def _model_path(arg: str | None) -> Path:
+    if arg:
+        return Path(arg)
+    if checkpoint.DEFAULT_MODEL.is_file():
+        return checkpoint.DEFAULT_MODEL
+    raise UsageError(NO_MODEL_HINT)
+
+
+def _device(name: str) -> torch.device:
+    if name == "cuda" and not torch.cuda.is_available():
+        raise UsageError("--device cuda: torch sees no CUDA device (CPU-only build or no GPU); use --device cpu")
+    return torch.device(name)
+
+
+def _main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.init_checkpoint:
+        if args.input:
+            parser.error("--init-checkpoint takes no INPUT.exr")
+        return _init_checkpoint(args)
+    if not args.input:
+        parser.error("the following arguments are required: INPUT.exr")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = _device(args.device)
+    model_path = _model_path(args.model)
+    src = Path(args.input)
+    out = Path(args.output) if args.output else default_output(src)
+    if out.suffix.lower() != ".exr":
+        raise UsageError(f"--output {out}: the output must be an .exr file")
+    if src.exists() and out.exists() and out.resolve() == src.resolve():
+        raise UsageError(f"{out}: output would overwrite the input; choose another --output")
+
+    buf = read_buffers(src)
+    model, _meta = checkpoint.load_checkpoint(model_path, map_location=device)
+    progress = Progress("denoise", quiet=args.quiet)
+
+    def report(done: int, total: int) -> None:
+        progress.total = total
+        progress.update(done, force=done == total)
+
+    start = time.perf_counter()
+    try:
+        result = denoise(buf, model, tile=args.tile, device=device, progress=report,
+                         precision=resolve_precision(args.precision, device))
+    finally:
+        progress.close()
+    seconds = time.perf_counter() - start
+
+    extra = {}
+    if args.weights_layers:
+        extra = {f"{WEIGHT_LAYER}.{name}": result.weights_per_z[j] for j, name in enumerate(ESTIMATES[1:])}
+    header = dict(buf.header)
+    header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4)})
+    write_rgb(out, result.rgb, extra=extra, header=header)
+    if not args.quiet:
+        h, w = buf.shape
+        print(f"{out}: {w}x{h} denoised with '{model.preset.name}' in {seconds:.2f} s")
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Console-script entry point: one-line errors, exit code 2 for usage errors, 1 for failures."""
+    return run_main(PROG, _main, argv)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

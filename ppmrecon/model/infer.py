@@ -1,0 +1,113 @@
+"""Tiled inference: buffer file -> network logits -> consistent combination (paper 002 Eq. 6).
+
+The estimator is ``yhat_c = sum_j sum_{i in Omega_c} w^j_{c,i} (~y_i + ~z^j_c - ~z^j_i)``
+with the weights predicted by the network (see :mod:`ppmrecon.model.combine`).
+
+The image is processed in square tiles. Each tile is extended by a halo of
+``receptive radius + K//2`` pixels (clipped at the image border), so the logits and the
+window of every kept pixel see exactly what they would see on the whole image: tiled
+and untiled results agree up to floating-point rounding. Tiling bounds the memory of
+the 4 K^2 logits per pixel, which is what dominates at full resolution.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import numpy as np
+import torch
+
+from ..buffers import BufferFile
+from ..errors import PpmreconError, UsageError
+from .combine import combine_with_weights, logit_channels
+from .features import ModelInputs, from_buffer
+from .kpn import KPN
+
+#: Automatic tiles keep the logits of one tile (with halo) below this size.
+TILE_BUDGET_BYTES = 96 * 1024 ** 2
+MIN_TILE = 32
+
+ProgressFn = Callable[[int, int], None]
+
+
+class Denoised(NamedTuple):
+    rgb: np.ndarray             # (H, W, 3) float32
+    weights_per_z: np.ndarray   # (4, H, W) float32: sum_i w^j_{c,i}, the share of ~z^j
+
+
+class NonFiniteOutputError(PpmreconError):
+    """The network or the combination produced NaN/Inf (never written to disk)."""
+
+
+def auto_tile(model: KPN, height: int, width: int) -> int:
+    """Largest tile side whose logits (halo included) fit :data:`TILE_BUDGET_BYTES`."""
+    per_pixel = logit_channels(model.window) * 4
+    side = int((TILE_BUDGET_BYTES / per_pixel) ** 0.5) - 2 * model.preset.halo
+    return max(MIN_TILE, min(side, max(height, width)))
+
+
+def resolve_precision(precision: str, device: torch.device) -> str:
+    """``auto`` -> bfloat16 where the hardware has native bf16 matmul, else float32."""
+    if precision != "auto":
+        if precision not in ("float32", "bfloat16"):
+            raise UsageError(f"precision must be auto, float32 or bfloat16, got '{precision}'")
+        return precision
+    if device.type == "cuda":
+        return "bfloat16" if torch.cuda.is_bf16_supported() else "float32"
+    try:
+        native = torch.cpu._is_amx_tile_supported() or torch.cpu._is_avx512_bf16_supported()
+    except AttributeError:  # older torch without the probes
+        native = False
+    return "bfloat16" if native else "float32"
+
+
+def _tiles(height: int, width: int, tile: int) -> list[tuple[int, int, int, int]]:
+    return [(y0, min(y0 + tile, height), x0, min(x0 + tile, width))
+            for y0 in range(0, height, tile) for x0 in range(0, width, tile)]
+
+
+@torch.no_grad()
+def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
+                   device: str | torch.device = "cpu", progress: ProgressFn | None = None,
+                   precision: str = "float32") -> Denoised:
+    """Run network + combiner over prepared :class:`ModelInputs` (batch of one)."""
+    device = torch.device(device)
+    precision = resolve_precision(precision, device)
+    model = model.to(device).eval()
+    _, _, height, width = inputs.y.shape
+    if tile is None:
+        tile = auto_tile(model, height, width)
+    if tile < 1:
+        raise UsageError(f"tile size must be positive, got {tile}")
+    halo = model.preset.halo
+    rgb = torch.empty(3, height, width)
+    weights = torch.empty(4, height, width)
+    boxes = _tiles(height, width, tile)
+    for n, (y0, y1, x0, x1) in enumerate(boxes):
+        ya, yb = max(y0 - halo, 0), min(y1 + halo, height)
+        xa, xb = max(x0 - halo, 0), min(x1 + halo, width)
+        crop = (..., slice(ya, yb), slice(xa, xb))
+        logits = model.predict(inputs.features[crop].to(device), precision)
+        if not torch.isfinite(logits).all():
+            raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
+                                       "or does not fit this input")
+        out = combine_with_weights(inputs.y[crop].to(device), inputs.z[crop].to(device), logits, method="loop")
+        keep = (slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
+        rgb[:, y0:y1, x0:x1] = out.image[0][(slice(None), *keep)].cpu()
+        weights[:, y0:y1, x0:x1] = out.weights_per_z[0][(slice(None), *keep)].cpu()
+        if progress is not None:
+            progress(n + 1, len(boxes))
+    if not torch.isfinite(rgb).all():
+        raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
+    return Denoised(rgb.permute(1, 2, 0).contiguous().numpy(), weights.numpy())
+
+
+def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
+            progress: ProgressFn | None = None, precision: str = "float32") -> Denoised:
+    """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
+
+    ``tile=None`` picks a tile size that bounds memory (:func:`auto_tile`); a tile at
+    least as large as the image means no tiling. ``progress(done, total)`` is called
+    after each tile. ``precision`` applies to the network only (see :meth:`KPN.predict`).
+    """
+    return denoise_inputs(from_buffer(buf, model.features), model, tile, device, progress, precision)
