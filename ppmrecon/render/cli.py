@@ -64,9 +64,21 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--kernel", default="constant", choices=KERNELS, help="density kernel (default: constant)")
     p.add_argument("--max-depth", type=positive_int, default=None, metavar="D",
                    help=f"maximum path depth for photons and eye paths (default: the scene's, else {DEFAULT_MAX_DEPTH})")
-    p.add_argument("--alpha", type=float, default=2.0 / 3.0, help="SPPM radius reduction alpha (default: 2/3)")
+    p.add_argument("--alpha", type=float, default=2.0 / 3.0,
+                   help="radius reduction alpha of SPPM and of FPPM's lower bound (default: 2/3)")
     p.add_argument("--knn", type=positive_int, default=20,
-                   help="k of the k-NN initial bandwidth (default: 20)")
+                   help="k of the k-NN initial bandwidth (default: 20; also CPPM's first photon-count threshold)")
+    tests = p.add_argument_group("CPPM / FPPM bandwidth tests (SPEC section 4)")
+    tests.add_argument("--significance", type=float, default=None, metavar="P",
+                       help="significance level of the chi-squared (cppm, default 0.05) or F test (fppm, default 0.01)")
+    tests.add_argument("--shrink-k", type=float, default=None, metavar="K",
+                       help="radius shrink factor k: cppm r*sqrt(k) (default 0.8), fppm k*r (default 0.7)")
+    tests.add_argument("--beta", type=float, default=None,
+                       help="cppm: growth of the photon-count threshold per shrink (default 1.5625)")
+    tests.add_argument("--r-min-frac", type=float, default=None, metavar="F",
+                       help="fppm: r_min as a fraction of each chain's initial radius (default 0.25)")
+    tests.add_argument("--per-channel", action="store_true",
+                       help="fppm: F-test R, G and B separately (chromatic or textured lights) instead of luminance")
     p.add_argument("--single", action="store_true",
                    help="render the conventional single-bandwidth image (second-smallest initial "
                         "bandwidth, one eye path) into a plain R,G,B EXR")
@@ -79,6 +91,36 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--list-scenes", action="store_true", help="list the built-in scenes and exit")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
+
+
+#: CLI option -> (controller parameter, methods that take it).
+METHOD_OPTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "significance": ("significance", ("cppm", "fppm")),
+    "shrink_k": ("k", ("cppm", "fppm")),
+    "beta": ("beta", ("cppm",)),
+    "r_min_frac": ("r_min_frac", ("fppm",)),
+    "per_channel": ("per_channel", ("fppm",)),
+}
+
+
+def method_params(args: argparse.Namespace) -> dict:
+    """The controller options given on the command line, checked against the method."""
+    params = {}
+    for option, (param, methods) in METHOD_OPTIONS.items():
+        value = getattr(args, option)
+        if value is None or value is False:
+            continue
+        flag = "--" + option.replace("_", "-")
+        if args.method not in methods:
+            raise UsageError(f"{flag} applies to --method {' or '.join(methods)}, not {args.method}")
+        if option in ("significance", "shrink_k") and not 0.0 < value < 1.0:
+            raise UsageError(f"{flag} must lie in (0, 1), got {value}")
+        if option == "beta" and not 1.0 <= value < float("inf"):
+            raise UsageError(f"{flag} must be at least 1, got {value}")
+        if option == "r_min_frac" and not 0.0 < value <= 1.0:
+            raise UsageError(f"{flag} must lie in (0, 1], got {value}")
+        params[param] = value
+    return params
 
 
 def _default_output(scene_name: str, method: str, single: bool) -> Path:
@@ -97,6 +139,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 0
     if not 0.0 < args.alpha < 1.0:
         raise UsageError(f"--alpha must lie in (0, 1), got {args.alpha}")
+    params = method_params(args)
     if args.single and args.shared_hit_point:
         raise UsageError("--single and --shared-hit-point exclude each other")
     if args.output is not None:
@@ -115,7 +158,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     settings = RenderSettings(
         method=args.method, passes=args.passes if args.passes else (None if args.time else DEFAULT_PASSES),
         time_budget=args.time, photons=args.photons, seed=args.seed, kernel=args.kernel,
-        max_depth=max_depth, alpha=args.alpha, knn=args.knn, layout=layout)
+        max_depth=max_depth, alpha=args.alpha, knn=args.knn, layout=layout, method_params=params)
     output = args.output or _default_output(loaded.name, args.method, args.single)
 
     renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)

@@ -9,24 +9,47 @@ Interface (what the pass loop calls):
 
     controller.start(r1)                 r1: list of per-pixel initial radii, one per chain
     controller.radii() -> list[Float]    the radii to gather with in the current pass
-    controller.update(i, result)         after pass i (1-based), with the gather statistics
+    controller.stats_targets(chains)     per-chain cell statistics the gather accumulates
+                                         into (None: the gather's fast path, no statistics)
+    controller.update(i, results)        after pass i (1-based); results: one
+                                         (chains, GatherResult) per eye hit point
     controller.header() -> dict          method name and parameters for the buffer header
-    controller.stats                     which extra gather statistics it needs
+    controller.stats                     which extra gather statistics it needs:
+                                         "none", "counts" (CPPM) or "moments" (FPPM)
+
+The radii and statistics are per *pixel* chain state: the eye path's gather point moves
+every pass (new random position in the pixel), and the statistics pool the photons seen
+around all of a pixel's gather points since the radius last changed, in each point's own
+tangent frame (the unified space of paper 000 Eq. 2), just as SPPM pools its per-pixel
+photon statistics. The hypothesis tests themselves live in :mod:`.hypothesis`.
 """
 
 from __future__ import annotations
 
+import inspect
+import math
 from dataclasses import dataclass, field
-from typing import Any, Protocol
+from typing import Any, Protocol, Sequence
 
 import drjit as dr
 import mitsuba as mi
+
+from . import hypothesis as H
 
 #: The five initial bandwidths relative to the k-NN distance, smallest first
 #: (paper 002 Sec. 4.1): chain 0 is ~y, chains 1..4 are ~z^1..~z^4.
 CHAIN_SCALES: tuple[float, ...] = (0.25, 0.5 ** 1.5, 0.5, 0.5 ** 0.5, 1.0)
 #: The conventional single-bandwidth baseline starts at the second-smallest.
 SINGLE_SCALE: float = CHAIN_SCALES[1]
+
+#: Dr.Jit's spelling of the element-wise operations of :mod:`.hypothesis`.
+DRJIT_OPS = H.ArrayOps(floor=dr.floor, select=dr.select, minimum=dr.minimum,
+                       maximum=dr.maximum)
+
+
+def _float64(x: Any) -> Any:
+    """Statistics are tested in double precision (the accumulators are float32/uint32)."""
+    return dr.float64_array_t(mi.Float)(x)
 
 
 class Controller(Protocol):
@@ -37,9 +60,76 @@ class Controller(Protocol):
 
     def radii(self) -> list[mi.Float]: ...
 
+    def stats_targets(self, chains: Sequence[int]) -> list["CellStatistics"] | None: ...
+
     def update(self, pass_index: int, result: Any) -> None: ...
 
     def header(self) -> dict[str, Any]: ...
+
+
+class CellStatistics:
+    """Per-pixel accumulators over the 12 cells of one chain since its radius last changed.
+
+    ``kind`` "counts": photon count per cell (uint32), for CPPM. ``kind`` "moments": sum
+    and sum of squares of the photon contribution per cell (float32; ``channels`` 1 for
+    luminance, 3 for RGB), for FPPM. Layout [pixel][cell][channel][sum, sum of squares]:
+    one photon is one scatter of 2 x channels adjacent values, and one pixel's cells
+    share cache lines while the gather visits its photons (measured ~1.3x faster than
+    separate sum and square arrays at 256x256).
+    """
+
+    def __init__(self, n_pixels: int, kind: str, channels: int = 1):
+        if kind not in ("counts", "moments"):
+            raise ValueError(f"unknown statistics kind '{kind}'")
+        if channels not in (1, 3) or (kind == "counts" and channels != 1):
+            raise ValueError("channels must be 1 (luminance) or 3 (RGB, moments only)")
+        self.n_pixels, self.kind, self.channels = n_pixels, kind, channels
+        self.stride = 1 if kind == "counts" else 2 * channels  # values per (pixel, cell)
+        size = n_pixels * H.N_CELLS * self.stride
+        self.data = dr.zeros(mi.UInt32 if kind == "counts" else mi.Float, size)
+
+    def add(self, pixel: mi.UInt32, cell: mi.UInt32, contrib: mi.Color3f, active: mi.Bool) -> None:
+        """Accumulate one photon per lane (its cell and contribution f * Phi) into pixel
+        ``pixel``'s statistics where ``active``. Called inside the gather's loop; each
+        lane owns its pixel, so the scatters never conflict."""
+        index = pixel * H.N_CELLS + cell
+        if self.kind == "counts":
+            value: Any = mi.UInt32(1)
+        else:
+            parts = [mi.luminance(contrib)] if self.channels == 1 else [contrib.x, contrib.y, contrib.z]
+            value = mi.ArrayXf(*(x for v in parts for x in (v, v * v)))
+        dr.scatter_reduce(dr.ReduceOp.Add, self.data, value, index, active,
+                          mode=dr.ReduceMode.NoConflicts)
+
+    def _cell(self, cell: int, offset: int) -> Any:
+        index = dr.arange(mi.UInt32, self.n_pixels) * (H.N_CELLS * self.stride) + (cell * self.stride + offset)
+        return _float64(dr.gather(type(self.data), self.data, index))
+
+    def cell_counts(self) -> list[Any]:
+        """Per-cell photon counts (float64), one array of pixels per cell."""
+        if self.kind != "counts":
+            raise ValueError("these statistics hold moments, not counts")
+        return [self._cell(c, 0) for c in range(H.N_CELLS)]
+
+    def cell_moments(self, channel: int) -> tuple[list[Any], list[Any]]:
+        """Per-cell sums and sums of squares (float64) of one channel."""
+        if self.kind != "moments":
+            raise ValueError("these statistics hold counts, not moments")
+        sums = [self._cell(c, 2 * channel) for c in range(H.N_CELLS)]
+        sumsqs = [self._cell(c, 2 * channel + 1) for c in range(H.N_CELLS)]
+        return sums, sumsqs
+
+    def reset(self, mask: mi.Bool) -> None:
+        """Zero the statistics of the pixels in ``mask`` (their radius changed)."""
+        per_pixel = H.N_CELLS * self.stride
+        index = dr.arange(mi.UInt32, self.n_pixels * per_pixel)
+        dr.scatter(self.data, type(self.data)(0), index, dr.repeat(mask, per_pixel))
+        dr.eval(self.data)
+
+
+def _per_chain_counts(results: Any) -> list[tuple[int, mi.UInt32]]:
+    """(chain, photons inside its radius this pass) for every chain in ``results``."""
+    return [(c, res.count[slot]) for chains, res in results for slot, c in enumerate(chains)]
 
 
 @dataclass
@@ -67,8 +157,12 @@ class SPPMController:
     def radii(self) -> list[mi.Float]:
         return self._r
 
+    def stats_targets(self, chains: Sequence[int]) -> None:
+        return None
+
     def update(self, pass_index: int, result: Any = None) -> None:
-        shrink = dr.sqrt((pass_index + self.alpha) / (pass_index + 1.0))
+        # Opaque: a per-pass literal would compile a new kernel every pass.
+        shrink = dr.opaque(mi.Float, math.sqrt((pass_index + self.alpha) / (pass_index + 1.0)))
         self._r = [r * shrink for r in self._r]
         dr.eval(self._r)
 
@@ -76,13 +170,181 @@ class SPPMController:
         return {"ppmrecon.method": self.name, "ppmrecon.alpha": self.alpha}
 
 
-def make_controller(method: str, **params: Any) -> Controller:
-    """The controller for ``method`` (``sppm``; more methods register in CONTROLLERS)."""
+@dataclass
+class CPPMController:
+    """Chi-squared PPM (Lin et al. 2020), as the authors' public Mitsuba 0.6 code does it.
+
+    Per pixel and chain: photon counts O_c of the 12 cells since the radius last changed,
+    their total N and a threshold T (starts at the k-NN k). Once N >= T, Pearson's test
+    of uniformity runs cumulatively (inner annulus, then the whole disc; see
+    :func:`.hypothesis.cppm_test`). If the whole disc passes, r is kept (and the counts
+    keep growing); if not, the counts reset, T *= beta and r shrinks to the outer radius
+    of the largest inner annulus that passed, r sqrt(1/2), or else to r sqrt(k).
+    """
+
+    significance: float = 0.05
+    k: float = 0.8
+    beta: float = 1.5625
+    knn: int = 20
+    name: str = "cppm"
+    stats: str = "counts"
+    _r: list[mi.Float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        _check_open_unit("significance", self.significance)
+        _check_open_unit("k", self.k)
+        if not self.beta >= 1.0:
+            raise ValueError(f"beta must be >= 1, got {self.beta}")
+        if self.knn <= 0:
+            raise ValueError(f"knn must be positive, got {self.knn}")
+        # Critical values once per controller (df 5 and 11), never per pixel or pass.
+        self.critical = H.chi2_critical(self.significance)
+
+    def start(self, r1: list[mi.Float]) -> None:
+        n = dr.width(r1[0])
+        self._r = [mi.Float(r) for r in r1]
+        self._stats = [CellStatistics(n, "counts") for _ in r1]
+        self._total = [dr.zeros(mi.UInt32, n) for _ in r1]
+        self._threshold = [dr.full(mi.Float, float(self.knn), n) for _ in r1]
+
+    def radii(self) -> list[mi.Float]:
+        return self._r
+
+    def stats_targets(self, chains: Sequence[int]) -> list[CellStatistics]:
+        return [self._stats[c] for c in chains]
+
+    def update(self, pass_index: int, results: Any) -> None:
+        for c, count in _per_chain_counts(results):
+            total = self._total[c] + count
+            ready = mi.Float(total) >= self._threshold[c]
+            passed = H.cppm_test(self._stats[c].cell_counts(), self.critical, DRJIT_OPS)
+            shrink = ready & ~passed[-1]
+            r_new = mi.Float(H.cppm_radius(_float64(self._r[c]), passed, self.k, DRJIT_OPS))
+            self._r[c] = dr.select(shrink, r_new, self._r[c])
+            self._threshold[c] = dr.select(shrink, self._threshold[c] * self.beta, self._threshold[c])
+            self._total[c] = dr.select(shrink, 0, total)
+            dr.eval(self._r[c], self._threshold[c], self._total[c], shrink)
+            self._stats[c].reset(shrink)
+
+    def header(self) -> dict[str, Any]:
+        return {"ppmrecon.method": self.name, "ppmrecon.cppm.significance": self.significance,
+                "ppmrecon.cppm.k": self.k, "ppmrecon.cppm.beta": self.beta,
+                "ppmrecon.cppm.threshold0": self.knn,
+                "ppmrecon.cppm.cells": f"{H.N_ANNULI}x{H.N_SECTORS}"}
+
+
+#: Default r_min of FPPM relative to each chain's (per-pixel) initial radius.
+FPPM_R_MIN_FRAC = 0.25
+
+
+@dataclass
+class FPPMController:
+    """F-test PPM (paper 000 Sec. 3.2 and 5.1).
+
+    Per pixel and chain: per-cell sums S_c and sums of squares Q_c of the photon
+    contributions psi = luminance(f * Phi) (or each of R, G, B with ``per_channel``),
+    and the common sample count m (photons inside the disc), since the radius last
+    changed. After every pass, F of Eq. 7 is compared with F_c, the (1 - significance)
+    quantile of F(11, 12 (m - 1)) from a table built once; Eq. 21 then keeps r if
+    F <= F_c, else sets r = max(k r, r_min (i + 1)^((alpha - 1) / 2)) and resets the
+    statistics. With ``per_channel`` a pixel shrinks if any channel rejects.
+
+    r_min is ``r_min_frac`` times the chain's initial radius at that pixel (the paper
+    leaves it open; its VCM+ experiments use 0.1% of r_1). It only binds where the test
+    keeps rejecting; then the radius follows SPPM's (i + 1)^((alpha - 1) / 2) decay,
+    which keeps the method consistent (paper 000 Sec. 5.2).
+
+    Samples: each photon inside the disc counts as one sample for every cell (SPEC
+    section 4). The paper counts all J emitted light paths (zeros included, m = tJ);
+    with equal contributions our F is then larger by about n / (n - 1) = 1.09 under the
+    null, so the effective significance is about 0.02 instead of 0.01.
+    """
+
+    significance: float = 0.01
+    k: float = 0.7
+    alpha: float = 2.0 / 3.0
+    r_min_frac: float = FPPM_R_MIN_FRAC
+    per_channel: bool = False
+    name: str = "fppm"
+    stats: str = "moments"
+    _r: list[mi.Float] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        _check_open_unit("significance", self.significance)
+        _check_open_unit("k", self.k)
+        _check_open_unit("alpha", self.alpha)
+        if not 0.0 < self.r_min_frac <= 1.0:
+            raise ValueError(f"r_min_frac must lie in (0, 1], got {self.r_min_frac}")
+        self.channels = 3 if self.per_channel else 1
+        self._f_table = mi.Float(H.f_critical_table(self.significance).astype("float32"))
+
+    def start(self, r1: list[mi.Float]) -> None:
+        n = dr.width(r1[0])
+        self._r = [mi.Float(r) for r in r1]
+        self._r_min = [mi.Float(r) * self.r_min_frac for r in r1]
+        self._stats = [CellStatistics(n, "moments", self.channels) for _ in r1]
+        self._m = [dr.zeros(mi.UInt32, n) for _ in r1]
+        dr.eval(self._r_min)
+
+    def radii(self) -> list[mi.Float]:
+        return self._r
+
+    def stats_targets(self, chains: Sequence[int]) -> list[CellStatistics]:
+        return [self._stats[c] for c in chains]
+
+    def critical_value(self, m: mi.UInt32) -> mi.Float:
+        """F_c for sample count m, looked up in the table (inf for m < 2)."""
+        return dr.gather(mi.Float, self._f_table, dr.minimum(m, H.F_TABLE_SIZE))
+
+    def reject(self, chain: int) -> mi.Bool:
+        """Where chain ``chain``'s F-test rejects the null hypothesis (Eq. 7 > F_c)."""
+        m = self._m[chain]
+        m64 = _float64(m)
+        f_c = _float64(self.critical_value(m))
+        reject = dr.zeros(mi.Bool, dr.width(m))
+        for ch in range(self.channels):
+            sums, sumsqs = self._stats[chain].cell_moments(ch)
+            reject |= H.anova_f(sums, sumsqs, m64, DRJIT_OPS) > f_c
+        return reject
+
+    def update(self, pass_index: int, results: Any) -> None:
+        floor_factor = dr.opaque(mi.Float, H.fppm_floor_factor(pass_index, self.alpha))
+        for c, count in _per_chain_counts(results):
+            self._m[c] = self._m[c] + count
+            reject = self.reject(c)
+            self._r[c] = H.fppm_radius(self._r[c], reject, self.k, self._r_min[c] * floor_factor, DRJIT_OPS)
+            self._m[c] = dr.select(reject, 0, self._m[c])
+            dr.eval(self._r[c], self._m[c], reject)
+            self._stats[c].reset(reject)
+
+    def header(self) -> dict[str, Any]:
+        return {"ppmrecon.method": self.name, "ppmrecon.fppm.significance": self.significance,
+                "ppmrecon.fppm.k": self.k, "ppmrecon.fppm.alpha": self.alpha,
+                "ppmrecon.fppm.r_min_frac": self.r_min_frac,
+                "ppmrecon.fppm.per_channel": bool(self.per_channel),
+                "ppmrecon.fppm.cells": f"{H.N_ANNULI}x{H.N_SECTORS}"}
+
+
+def _check_open_unit(name: str, value: float) -> None:
+    if not 0.0 < value < 1.0:
+        raise ValueError(f"{name} must lie in (0, 1), got {value}")
+
+
+def make_controller(method: str, defaults: dict[str, Any] | None = None, **params: Any) -> Controller:
+    """The controller for ``method``. ``params`` are its options; ``defaults`` are
+    render-wide settings (alpha, knn) passed on to the controllers that take them."""
     try:
         cls = CONTROLLERS[method]
     except KeyError:
         raise ValueError(f"unknown method '{method}' (choose {', '.join(CONTROLLERS)})") from None
+    accepted = inspect.signature(cls).parameters
+    unknown = [k for k in params if k not in accepted or k.startswith("_") or k in ("name", "stats")]
+    if unknown:
+        raise ValueError(f"method '{method}' takes no option {', '.join(unknown)}")
+    for key, value in (defaults or {}).items():
+        if key in accepted:
+            params.setdefault(key, value)
     return cls(**params)
 
 
-CONTROLLERS: dict[str, type] = {"sppm": SPPMController}
+CONTROLLERS: dict[str, type] = {"sppm": SPPMController, "cppm": CPPMController, "fppm": FPPMController}

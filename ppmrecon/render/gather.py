@@ -13,6 +13,14 @@ normal faces away from the gather point's are rejected (the back side of a thin 
 must neither light nor shrink the estimate), unless the BSDF transmits. The pass
 estimate is then ``L_e + beta * S_s / J`` (see :mod:`ppmrecon.render.integrator`).
 
+With ``stats`` (CPPM, FPPM), the same visit also files every photon inside a chain's
+radius into that chain's per-pixel cell statistics (2 equal-area annuli x 6 sectors of
+the gather point's shading tangent frame, see :mod:`ppmrecon.render.hypothesis`): a
+count per cell, or the sum and sum of squares of its contribution f * Phi (without the
+kernel weight: a sample of the integral of Psi* over the cell, paper 000 Eq. 5-6). The
+photon's sector is computed once and shared by the chains; its annulus depends on each
+chain's radius. Without ``stats`` none of this enters the kernel (SPPM's fast path).
+
 The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
 the first pass and reused afterwards (every per-pass number enters as an opaque array).
 """
@@ -20,13 +28,18 @@ the first pass and reused afterwards (every per-pass number enters as an opaque 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import drjit as dr
 import mitsuba as mi
 
 from .eye import GatherPoints
 from .grid import PhotonGrid, cell_hash, cell_of
+from .hypothesis import cell_index, sector_index
 from .kernels import kernel_weight
+
+if TYPE_CHECKING:
+    from .controllers import CellStatistics
 
 #: A photon counts only if its oriented normal and the gather point's agree this much.
 FACING_COS = 1e-3
@@ -40,9 +53,15 @@ class GatherResult:
     count: list[mi.UInt32]
 
 
-def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant") -> GatherResult:
+def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant",
+           stats: list["CellStatistics"] | None = None) -> GatherResult:
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
-    0 for unused slots) around every gather point of ``gp``."""
+    0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
+    slot) also accumulate the per-cell statistics of the photons inside each radius."""
+    from .controllers import DRJIT_OPS
+
+    if stats is not None and len(stats) != len(radii):
+        raise ValueError("gather: one statistics target per chain slot")
     n_slots = len(radii)
     si = gp.si
     r_search = radii[0]
@@ -64,6 +83,7 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     check_facing = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
     n_gp = gp.n_oriented
     mask = grid.table_mask
+    lane = dr.arange(mi.UInt32, dr.width(gp.found))
 
     def photon_body(k, end, cell, flux, count):
         xp = dr.gather(mi.Point3f, grid.p, k)
@@ -80,11 +100,19 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         contrib = f_cos / cos_g * dr.gather(mi.Color3f, grid.power, k, ok)
         flux = list(flux)
         count = list(count)
+        if stats is not None:
+            # Tangent-plane offset in the shading frame (paper 000 Eq. 2); the sector is
+            # the same for every chain, only the annulus depends on r_s.
+            offset = xp - si.p
+            sector = sector_index(dr.dot(offset, si.sh_frame.s), dr.dot(offset, si.sh_frame.t), DRJIT_OPS)
         for s in range(n_slots):
             inside = ok & (d2 < r2[s])
             weight = kernel_weight(kernel, d2, r2[s], sqrt=dr.sqrt)
             flux[s] = dr.select(inside, flux[s] + weight * contrib, flux[s])
             count[s] = dr.select(inside, count[s] + 1, count[s])
+            if stats is not None:
+                cell_s = mi.UInt32(cell_index(sector, d2, r2[s], DRJIT_OPS))
+                stats[s].add(lane, cell_s, contrib, inside)
         return k + 1, end, cell, tuple(flux), tuple(count)
 
     def cell_body(c, flux, count):
@@ -110,4 +138,6 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         label="ppmrecon_gather_cells")
     flux, count = list(flux), list(count)
     dr.eval(flux, count)
+    if stats is not None:  # the scatters ran in the loop kernel; make them visible
+        dr.eval(*(st.data for st in stats))
     return GatherResult(flux=flux, count=count)

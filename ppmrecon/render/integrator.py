@@ -136,10 +136,11 @@ class Renderer:
         size = self.sensor.film().crop_size()
         self.width, self.height = int(size[0]), int(size[1])
         self.n_pixels = self.width * self.height
-        params = dict(settings.method_params)
-        if settings.method == "sppm":
-            params.setdefault("alpha", settings.alpha)
-        self.controller: Controller = make_controller(settings.method, **params)
+        # Render-wide alpha and k-NN k reach the controllers that take them (SPPM and
+        # FPPM's alpha, CPPM's initial photon-count threshold).
+        self.controller: Controller = make_controller(
+            settings.method, defaults={"alpha": settings.alpha, "knn": settings.knn},
+            **settings.method_params)
         self.scales = (SINGLE_SCALE,) if settings.layout == "single" else CHAIN_SCALES
         self.n_chains = len(self.scales)
         self.means = [RunningMean.zeros(self.n_pixels) for _ in range(self.n_chains)]
@@ -202,7 +203,8 @@ class Renderer:
         results = []
         for j, p in enumerate(points):
             chains = self._chains_of(j)
-            results.append((chains, gather(p, [radii[c] for c in chains], grid, s.kernel)))
+            results.append((chains, gather(p, [radii[c] for c in chains], grid, s.kernel,
+                                           self.controller.stats_targets(chains))))
         t4 = clock()
 
         inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
