@@ -54,6 +54,10 @@ UNFOLD_BUDGET_BYTES = 256 * 1024 ** 2
 Method = Literal["auto", "loop", "unfold"]
 
 
+class NonFiniteLogitsError(ValueError):
+    """The weights cannot be formed: a NaN/+Inf logit, or all logits of a pixel -Inf."""
+
+
 class Combined(NamedTuple):
     """Result of :func:`combine_with_weights`."""
 
@@ -181,7 +185,12 @@ def combine_with_weights(y: torch.Tensor, z: torch.Tensor, logits: torch.Tensor,
     k = _check(y, z, logits)
     dpad = _padded_differences(y, z, k // 2)
     # Stable softmax: exp(l - max l) <= 1 and the largest equals 1, so the total >= 1.
-    e = (logits - logits.amax(dim=1, keepdim=True)).exp_()
+    peak = logits.amax(dim=1, keepdim=True)
+    # max propagates NaN and +Inf, so one check on the (B, 1, H, W) maxima covers every
+    # logit; a -Inf logit is a legitimate zero weight.
+    if not bool(torch.isfinite(peak).all()):
+        raise NonFiniteLogitsError("logits contain NaN/+Inf, or a pixel whose logits are all -Inf")
+    e = (logits - peak).exp_()
     path = _choose(method, y, k)
     num = (_numerator_unfold if path == "unfold" else _numerator_loop)(dpad, e, k)
     b, _, h, w = e.shape
