@@ -55,6 +55,8 @@ def _trace(scene: mi.Scene, rng: mi.PCG32, n_photons: int, max_depth: int, rr_de
     beta = mi.Color3f(beta)
     depth = mi.UInt32(0)
     active = dr.any(beta > 0.0)
+    # Roulette on the throughput relative to the emitted power, not on the power itself.
+    inv_power0 = dr.select(active, 1.0 / dr.max(beta), 0.0)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
 
     while active:
@@ -79,7 +81,7 @@ def _trace(scene: mi.Scene, rng: mi.PCG32, n_photons: int, max_depth: int, rr_de
         depth += 1
 
         # Russian roulette on the throughput, unbiased by dividing by the survival odds.
-        q = dr.minimum(dr.max(beta), 0.95)
+        q = dr.minimum(dr.max(beta) * inv_power0, 0.95)
         roulette = depth >= rr_depth
         survive = rng.next_float32() < q
         beta = dr.select(roulette, beta / dr.maximum(q, 1e-8), beta)
