@@ -237,14 +237,28 @@ def test_denoise_reports_progress_and_is_consistent_with_combiner():
     np.testing.assert_allclose(out.weights_per_z.sum(0), 1.0, rtol=1e-5)
 
 
+def test_worker_threads_give_the_same_image_and_restore_thread_count():
+    model = build("tiny").eval()
+    buf = make_buffer(40, 50, seed=12)
+    one = denoise(buf, model, tile=16, workers=1)
+    calls = []
+    torch.set_num_threads(2)
+    many = denoise(buf, model, tile=16, workers=3, progress=lambda d, t: calls.append((d, t)))
+    assert torch.get_num_threads() == 2                  # ops ran single-threaded, then restored
+    np.testing.assert_array_equal(many.rgb, one.rgb)
+    np.testing.assert_array_equal(many.weights_per_z, one.weights_per_z)
+    assert sorted(calls) == [(n, 12) for n in range(1, 13)]
+
+
 def test_non_finite_network_output_is_refused():
     model = build("tiny").eval()
     with torch.no_grad():
         for p in model.parameters():
             p.fill_(1e30)                                   # logits overflow to inf / nan
-    inp = from_buffer(make_buffer(6, 6, seed=8))
-    with pytest.raises(NonFiniteOutputError, match="NaN/Inf"):
-        denoise_inputs(inp, model)
+    inp = from_buffer(make_buffer(20, 20, seed=8))
+    for workers in (1, 2):
+        with pytest.raises(NonFiniteOutputError, match="NaN/Inf"):
+            denoise_inputs(inp, model, tile=8, workers=workers)
 
 
 # -------------------------------------------------------- learning on a synthetic problem
@@ -331,3 +345,21 @@ def test_tiny_network_learns_to_beat_every_single_input():
     assert steps >= 100, f"only {steps} steps in 60 s"
     assert loss_after < 0.8 * loss_before
     assert test_relmse < 0.5 * best_input, (test_relmse, best_input)
+
+
+@pytest.mark.parametrize("h,w", [(1, 1), (2, 9), (3, 1)])
+def test_images_smaller_than_the_window(h, w):
+    model = build("small").eval()                     # K = 11 > image
+    buf = make_buffer(h, w, seed=9)
+    buf.estimates[:] = 0.0                            # all black
+    out = denoise(buf, model)
+    assert out.rgb.shape == (h, w, 3) and np.array_equal(out.rgb, np.zeros((h, w, 3), np.float32))
+    buf = make_buffer(h, w, seed=10)
+    out = denoise(buf, model)
+    inp = from_buffer(buf)
+    assert np.isfinite(out.rgb).all() and out.weights_per_z.shape == (4, h, w)
+    np.testing.assert_allclose(out.weights_per_z.sum(0), 1.0, rtol=1e-5)
+    # replicate padding: every term y_i + z_c - z_i uses pixels of the image itself
+    y, z = inp.y.numpy(), inp.z.numpy()
+    assert out.rgb.min() >= y.min() + z.min() - z.max() - 1e-5
+    assert out.rgb.max() <= y.max() + z.max() - z.min() + 1e-5

@@ -12,7 +12,9 @@ the 4 K^2 logits per pixel, which is what dominates at full resolution.
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
+from typing import Callable, Iterator, NamedTuple
 
 import numpy as np
 import torch
@@ -70,11 +72,30 @@ def _tiles(height: int, width: int, tile: int) -> list[tuple[int, int, int, int]
             for y0 in range(0, height, tile) for x0 in range(0, width, tile)]
 
 
-@torch.no_grad()
+@contextmanager
+def _one_thread_per_op() -> Iterator[None]:
+    """Run torch ops single-threaded (restored afterwards).
+
+    Tiles are spread over worker threads instead: thousands of small ops per image each
+    paying an OpenMP barrier are fast on an idle machine but collapse (tens of times
+    slower, measured) when other processes share the cores; independent tiles do not.
+    """
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
                    device: str | torch.device = "cpu", progress: ProgressFn | None = None,
-                   precision: str = "float32") -> Denoised:
-    """Run network + combiner over prepared :class:`ModelInputs` (batch of one)."""
+                   precision: str = "float32", workers: int | None = None) -> Denoised:
+    """Run network + combiner over prepared :class:`ModelInputs` (batch of one).
+
+    On the CPU, ``workers`` threads (default: torch's thread count) denoise tiles side by
+    side, each op single-threaded; on a GPU, tiles run one after another.
+    """
     device = torch.device(device)
     precision = resolve_precision(precision, device)
     model = model.to(device).eval()
@@ -87,32 +108,56 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
     rgb = torch.empty(3, height, width)
     weights = torch.empty(4, height, width)
     boxes = _tiles(height, width, tile)
-    for n, (y0, y1, x0, x1) in enumerate(boxes):
+
+    def run_tile(box: tuple[int, int, int, int]) -> None:
+        y0, y1, x0, x1 = box
         ya, yb = max(y0 - halo, 0), min(y1 + halo, height)
         xa, xb = max(x0 - halo, 0), min(x1 + halo, width)
         crop = (..., slice(ya, yb), slice(xa, xb))
-        logits = model.predict(inputs.features[crop].to(device), precision)
-        try:
-            out = combine_with_weights(inputs.y[crop].to(device), inputs.z[crop].to(device), logits, method="loop")
-        except NonFiniteLogitsError:
-            raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
-                                       "or does not fit this input") from None
-        keep = (slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
-        rgb[:, y0:y1, x0:x1] = out.image[0][(slice(None), *keep)].cpu()
-        weights[:, y0:y1, x0:x1] = out.weights_per_z[0][(slice(None), *keep)].cpu()
+        with torch.no_grad():                     # grad mode is per thread
+            logits = model.predict(inputs.features[crop].to(device), precision)
+            try:
+                out = combine_with_weights(inputs.y[crop].to(device), inputs.z[crop].to(device), logits,
+                                           method="loop")
+            except NonFiniteLogitsError:
+                raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
+                                           "or does not fit this input") from None
+        keep = (slice(None), slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
+        rgb[:, y0:y1, x0:x1] = out.image[0][keep].cpu()           # tiles are disjoint: no lock needed
+        weights[:, y0:y1, x0:x1] = out.weights_per_z[0][keep].cpu()
+
+    def report(done: int) -> None:
         if progress is not None:
-            progress(n + 1, len(boxes))
+            progress(done, len(boxes))
+
+    n_workers = min(len(boxes), workers or torch.get_num_threads()) if device.type == "cpu" else 1
+    if n_workers <= 1:
+        for n, box in enumerate(boxes):
+            run_tile(box)
+            report(n + 1)
+    else:
+        with _one_thread_per_op(), ThreadPoolExecutor(n_workers, thread_name_prefix="denoise") as pool:
+            futures = [pool.submit(run_tile, box) for box in boxes]
+            try:
+                for n, fut in enumerate(as_completed(futures)):
+                    fut.result()
+                    report(n + 1)
+            except BaseException:
+                for fut in futures:
+                    fut.cancel()
+                raise
     if not torch.isfinite(rgb).all():
         raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
     return Denoised(rgb.permute(1, 2, 0).contiguous().numpy(), weights.numpy())
 
 
 def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
-            progress: ProgressFn | None = None, precision: str = "float32") -> Denoised:
+            progress: ProgressFn | None = None, precision: str = "float32",
+            workers: int | None = None) -> Denoised:
     """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
 
     ``tile=None`` picks a tile size that bounds memory (:func:`auto_tile`); a tile at
     least as large as the image means no tiling. ``progress(done, total)`` is called
     after each tile. ``precision`` applies to the network only (see :meth:`KPN.predict`).
     """
-    return denoise_inputs(from_buffer(buf, model.features), model, tile, device, progress, precision)
+    return denoise_inputs(from_buffer(buf, model.features), model, tile, device, progress, precision, workers)
