@@ -94,50 +94,86 @@ def compress_variance(var: torch.Tensor, mean: torch.Tensor) -> torch.Tensor:
     return torch.log1p(var / (1.0 + mean) ** 2)
 
 
-def _normalise_max(x: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
-    """x / max(ref) over each image of the batch; 0 where the image's max is 0."""
-    peak = ref.flatten(1).amax(1).view(-1, *([1] * (x.dim() - 1)))
-    return torch.where(peak > 0, x / torch.where(peak > 0, peak, torch.ones_like(peak)), torch.zeros_like(x))
+class FeatureScales(NamedTuple):
+    """Per-image normalisers, from the whole image so that crops agree with it."""
+
+    depth: torch.Tensor    # (B,) largest depth
+    radius: torch.Tensor   # (B,) largest bandwidth of the widest chain (ones if unused)
+
+
+def feature_scales(depth: torch.Tensor, radii: torch.Tensor | None = None) -> FeatureScales:
+    """Scales of whole images: depth (B, H, W), radii (B, 5, H, W) or None."""
+    peak_r = radii[:, -1].flatten(1).amax(1) if radii is not None else torch.ones(depth.shape[0])
+    return FeatureScales(depth.flatten(1).amax(1), peak_r)
+
+
+def _divide(x: torch.Tensor, peak: torch.Tensor) -> torch.Tensor:
+    """x / peak per image of the batch; 0 for an image whose peak is 0 (e.g. all sky)."""
+    peak = peak.to(x.dtype).view(-1, *([1] * (x.dim() - 1)))
+    safe = torch.where(peak > 0, peak, torch.ones_like(peak))
+    return torch.where(peak > 0, x / safe, torch.zeros_like(x))
 
 
 def build_features(estimates: torch.Tensor, variances: torch.Tensor, albedo: torch.Tensor,
                    normal: torch.Tensor, depth: torch.Tensor, config: FeatureConfig = FeatureConfig(),
-                   radii: torch.Tensor | None = None, passes: torch.Tensor | None = None) -> torch.Tensor:
-    """Assemble the (B, C, H, W) network input from whole images.
+                   radii: torch.Tensor | None = None, passes: torch.Tensor | None = None,
+                   scales: FeatureScales | None = None) -> torch.Tensor:
+    """Assemble the (B, C, H, W) network input.
 
     estimates (B, 5, 3, H, W), variances (B, 5, H, W), albedo and normal (B, 3, H, W),
     depth (B, H, W); radii (B, 5, H, W) and passes (B,) when the config asks for them.
+    Without ``scales`` the inputs are taken to be whole images; for a crop, pass the
+    whole image's :func:`feature_scales`.
     """
     b, n, _, h, w = estimates.shape
+    if config.radius and radii is None:
+        raise ValueError("FeatureConfig(radius=True) needs radii")
+    if config.passes and passes is None:
+        raise ValueError("FeatureConfig(passes=True) needs the pass count")
+    if scales is None:
+        scales = feature_scales(depth, radii if config.radius else None)
     mean = estimates.mean(2)                                           # (B, 5, H, W)
     parts = [compress_radiance(estimates).reshape(b, 3 * n, h, w),
              compress_variance(variances, mean), albedo, normal,
-             _normalise_max(depth, depth).unsqueeze(1)]
+             _divide(depth, scales.depth).unsqueeze(1)]
     if config.radius:
-        if radii is None:
-            raise ValueError("FeatureConfig(radius=True) needs radii")
-        parts.append(_normalise_max(radii, radii[:, -1]))
+        parts.append(_divide(radii, scales.radius))
     if config.passes:
-        if passes is None:
-            raise ValueError("FeatureConfig(passes=True) needs the pass count")
         level = torch.log1p(passes.to(estimates.dtype).clamp(min=0)) / _PASS_SCALE
         parts.append(level.view(b, 1, 1, 1).expand(b, 1, h, w))
     return torch.cat(parts, 1)
 
 
-def from_buffer(buf: BufferFile, config: FeatureConfig = FeatureConfig()) -> ModelInputs:
-    """Network features and raw ~y, ~z of one buffer file (see module docstring)."""
+def _passes(buf: BufferFile) -> torch.Tensor:
+    try:
+        return torch.tensor([float(buf.header[H_PASSES])])
+    except (KeyError, TypeError, ValueError):
+        raise UsageError(f"the model needs the pass count, but the buffer header has no valid '{H_PASSES}'") from None
+
+
+def buffer_scales(buf: BufferFile) -> FeatureScales:
+    """:func:`feature_scales` of a whole buffer file."""
+    return FeatureScales(torch.tensor([float(buf.depth.max(initial=0.0))]),
+                         torch.tensor([float(buf.radii[-1].max(initial=0.0))]))
+
+
+def from_buffer(buf: BufferFile, config: FeatureConfig = FeatureConfig(),
+                crop: tuple[slice, slice] | None = None, scales: FeatureScales | None = None) -> ModelInputs:
+    """Network features and raw ~y, ~z of one buffer file (see module docstring).
+
+    ``crop=(rows, cols)`` gives the inputs of that window only, normalised like the
+    whole image (pass ``scales=buffer_scales(buf)`` to compute the scales once).
+    """
+    rows, cols = crop or (slice(None), slice(None))
+    if scales is None:
+        scales = buffer_scales(buf)
+
     def t(a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32)).unsqueeze(0)
 
-    est = t(buf.estimates).permute(0, 1, 4, 2, 3)                     # (1, 5, 3, H, W)
-    passes = None
-    if config.passes:
-        try:
-            passes = torch.tensor([float(buf.header[H_PASSES])])
-        except (KeyError, TypeError, ValueError):
-            raise UsageError(f"the model needs the pass count, but the buffer header has no valid '{H_PASSES}'") from None
-    feats = build_features(est, t(buf.variances), t(buf.albedo).permute(0, 3, 1, 2),
-                           t(buf.normal).permute(0, 3, 1, 2), t(buf.depth), config,
-                           radii=t(buf.radii) if config.radius else None, passes=passes)
+    est = t(buf.estimates[:, rows, cols]).permute(0, 1, 4, 2, 3)      # (1, 5, 3, h, w)
+    feats = build_features(est, t(buf.variances[:, rows, cols]), t(buf.albedo[rows, cols]).permute(0, 3, 1, 2),
+                           t(buf.normal[rows, cols]).permute(0, 3, 1, 2), t(buf.depth[rows, cols]), config,
+                           radii=t(buf.radii[:, rows, cols]) if config.radius else None,
+                           passes=_passes(buf) if config.passes else None, scales=scales)
     return ModelInputs(feats, est[:, 0].contiguous(), est[:, 1:].contiguous())

@@ -22,7 +22,7 @@ import torch
 from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
-from .features import ModelInputs, from_buffer
+from .features import ModelInputs, buffer_scales, from_buffer
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -88,18 +88,49 @@ def _one_thread_per_op() -> Iterator[None]:
         torch.set_num_threads(before)
 
 
+InputSource = Callable[[slice, slice], ModelInputs]
+
+
 def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
                    device: str | torch.device = "cpu", progress: ProgressFn | None = None,
                    precision: str = "float32", workers: int | None = None) -> Denoised:
-    """Run network + combiner over prepared :class:`ModelInputs` (batch of one).
+    """Run network + combiner over prepared :class:`ModelInputs` (batch of one)."""
+    def source(rows: slice, cols: slice) -> ModelInputs:
+        return ModelInputs(*(t[..., rows, cols] for t in inputs))
 
-    On the CPU, ``workers`` threads (default: torch's thread count) denoise tiles side by
-    side, each op single-threaded; on a GPU, tiles run one after another.
+    _, _, height, width = inputs.y.shape
+    return _denoise(source, height, width, model, tile, device, progress, precision, workers)
+
+
+def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
+            progress: ProgressFn | None = None, precision: str = "float32",
+            workers: int | None = None) -> Denoised:
+    """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
+
+    ``tile=None`` picks the tile size (:func:`auto_tile`); a tile at least as large as
+    the image means no tiling. ``progress(done, total)`` is called after each tile.
+    ``precision`` applies to the network only (see :meth:`KPN.predict`). Features are
+    computed per tile (with the whole image's normalisers), so no full-resolution
+    feature tensor is ever held.
     """
+    scales = buffer_scales(buf)
+    from_buffer(buf, model.features, (slice(0, 1), slice(0, 1)), scales)   # header problems fail early
+
+    def source(rows: slice, cols: slice) -> ModelInputs:
+        return from_buffer(buf, model.features, (rows, cols), scales)
+
+    height, width = buf.shape
+    return _denoise(source, height, width, model, tile, device, progress, precision, workers)
+
+
+def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int | None,
+             device: str | torch.device, progress: ProgressFn | None, precision: str,
+             workers: int | None) -> Denoised:
+    """The tile loop. On the CPU, ``workers`` threads (default: torch's thread count)
+    denoise tiles side by side, each op single-threaded; on a GPU, one tile at a time."""
     device = torch.device(device)
     precision = resolve_precision(precision, device)
     model = model.to(device).eval()
-    _, _, height, width = inputs.y.shape
     if tile is None:
         tile = auto_tile(model, height, width)
     if tile < 1:
@@ -113,12 +144,11 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
         y0, y1, x0, x1 = box
         ya, yb = max(y0 - halo, 0), min(y1 + halo, height)
         xa, xb = max(x0 - halo, 0), min(x1 + halo, width)
-        crop = (..., slice(ya, yb), slice(xa, xb))
         with torch.no_grad():                     # grad mode is per thread
-            logits = model.predict(inputs.features[crop].to(device), precision)
+            inp = source(slice(ya, yb), slice(xa, xb))
+            logits = model.predict(inp.features.to(device), precision)
             try:
-                out = combine_with_weights(inputs.y[crop].to(device), inputs.z[crop].to(device), logits,
-                                           method="loop")
+                out = combine_with_weights(inp.y.to(device), inp.z.to(device), logits, method="loop")
             except NonFiniteLogitsError:
                 raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
                                            "or does not fit this input") from None
@@ -130,12 +160,12 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
         if progress is not None:
             progress(done, len(boxes))
 
-    n_workers = min(len(boxes), workers or torch.get_num_threads()) if device.type == "cpu" else 1
-    if n_workers <= 1:
+    if device.type != "cpu":
         for n, box in enumerate(boxes):
             run_tile(box)
             report(n + 1)
     else:
+        n_workers = max(1, min(len(boxes), workers or torch.get_num_threads()))
         with _one_thread_per_op(), ThreadPoolExecutor(n_workers, thread_name_prefix="denoise") as pool:
             futures = [pool.submit(run_tile, box) for box in boxes]
             try:
@@ -149,15 +179,3 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
     if not torch.isfinite(rgb).all():
         raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
     return Denoised(rgb.permute(1, 2, 0).contiguous().numpy(), weights.numpy())
-
-
-def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
-            progress: ProgressFn | None = None, precision: str = "float32",
-            workers: int | None = None) -> Denoised:
-    """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
-
-    ``tile=None`` picks a tile size that bounds memory (:func:`auto_tile`); a tile at
-    least as large as the image means no tiling. ``progress(done, total)`` is called
-    after each tile. ``precision`` applies to the network only (see :meth:`KPN.predict`).
-    """
-    return denoise_inputs(from_buffer(buf, model.features), model, tile, device, progress, precision, workers)
