@@ -208,7 +208,7 @@ def main() -> None:
 
     import torch
 
-    from ppmrecon.model.cli import DEFAULT_PRESET
+    from ppmrecon.model.kpn import DEFAULT_PRESET
 
     default = args.default or DEFAULT_PRESET
     base = {"threads": args.threads, "precision": args.precision, "repeats": args.repeats,

@@ -28,7 +28,7 @@ import torch
 from ..buffers import SCHEMA_VERSION, _default_mode
 from ..errors import UsageError
 from .features import FeatureConfig
-from .kpn import KPN, Preset, build
+from .kpn import DEFAULT_PRESET, KPN, Preset, build
 
 FORMAT = "ppmrecon-kpn"
 FORMAT_VERSION = 1
@@ -71,7 +71,7 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
         raise
 
 
-def init_checkpoint(path: str | os.PathLike, preset: Preset | str = "tiny",
+def init_checkpoint(path: str | os.PathLike, preset: Preset | str = DEFAULT_PRESET,
                     features: FeatureConfig = FeatureConfig(), seed: int = 0) -> KPN:
     """Write a freshly initialised (untrained) model to ``path`` and return it."""
     torch.manual_seed(seed)

@@ -26,11 +26,10 @@ from ..cli_common import ArgumentParser, Progress, positive_int, run_main
 from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
-from .infer import denoise, resolve_precision
-from .kpn import load_preset, parameter_count, preset_names
+from .infer import denoise
+from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
 PROG = "ppmrecon-denoise"
-DEFAULT_PRESET = "tiny"        # the CPU default: see configs/models/tiny.json and the benchmark
 WEIGHT_LAYER = "weight"
 H_DENOISER = "ppmrecon.denoiser"
 H_MODEL = "ppmrecon.model"
@@ -127,8 +126,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
 
     start = time.perf_counter()
     try:
-        result = denoise(buf, model, tile=args.tile, device=device, progress=report,
-                         precision=resolve_precision(args.precision, device))
+        result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision)
     finally:
         progress.close()
     seconds = time.perf_counter() - start

@@ -93,7 +93,7 @@ InputSource = Callable[[slice, slice], ModelInputs]
 
 def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
                    device: str | torch.device = "cpu", progress: ProgressFn | None = None,
-                   precision: str = "float32", workers: int | None = None) -> Denoised:
+                   precision: str = "auto", workers: int | None = None) -> Denoised:
     """Run network + combiner over prepared :class:`ModelInputs` (batch of one)."""
     def source(rows: slice, cols: slice) -> ModelInputs:
         return ModelInputs(*(t[..., rows, cols] for t in inputs))
@@ -103,13 +103,14 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
 
 
 def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
-            progress: ProgressFn | None = None, precision: str = "float32",
+            progress: ProgressFn | None = None, precision: str = "auto",
             workers: int | None = None) -> Denoised:
     """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
 
     ``tile=None`` picks the tile size (:func:`auto_tile`); a tile at least as large as
     the image means no tiling. ``progress(done, total)`` is called after each tile.
-    ``precision`` applies to the network only (see :meth:`KPN.predict`). Features are
+    ``precision`` (``auto``, ``float32``, ``bfloat16``; see :func:`resolve_precision`)
+    applies to the network only (see :meth:`KPN.predict`). Features are
     computed per tile (with the whole image's normalisers), so no full-resolution
     feature tensor is ever held.
     """

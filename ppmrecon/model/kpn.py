@@ -29,6 +29,9 @@ from .features import FeatureConfig
 PACKAGE_MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
 REPO_MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
 PRESET_DIRS: tuple[Path, ...] = (REPO_MODELS, PACKAGE_MODELS)
+#: The CPU default: the only preset within a few times OIDN's time at 720p on 2 cores
+#: (benchmarks/results/denoise.md); ``small`` and ``paper`` are for better hardware.
+DEFAULT_PRESET = "tiny"
 
 
 @dataclass(frozen=True)
