@@ -232,9 +232,25 @@ def test_denoise_reports_progress_and_is_consistent_with_combiner():
     assert calls[-1] == (12, 12) and len(calls) == 12
     inp = from_buffer(buf)
     with torch.no_grad():
-        ref = combine(inp.y, inp.z, model(inp.features))[0].permute(1, 2, 0).numpy()
+        ref = combine(inp.y, inp.z, model(inp.features)).clamp(min=0)[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(out.rgb, ref, rtol=1e-5, atol=1e-5 * np.abs(ref).max())
     np.testing.assert_allclose(out.weights_per_z.sum(0), 1.0, rtol=1e-5)
+
+
+def test_output_is_clamped_at_zero_where_all_terms_are_negative():
+    """~y = 0 and ~z^j brighter around the centre: every term y_i + z_c - z_i < 0 there."""
+    buf = make_buffer(9, 9, seed=14)
+    buf.estimates[0] = 0.0
+    buf.estimates[1:] = 5.0
+    buf.estimates[1:, 4, 4] = 0.0
+    inp = from_buffer(buf)
+    model = build("tiny").eval()
+    with torch.no_grad():
+        raw = combine(inp.y, inp.z, model(inp.features))
+    assert float(raw[0, :, 4, 4].max()) < 0                       # Eq. 6 itself goes negative
+    out = denoise(buf, model, precision="float32")
+    assert out.rgb.min() >= 0 and np.all(out.rgb[4, 4] == 0)
+    np.testing.assert_allclose(out.rgb, raw.clamp(min=0)[0].permute(1, 2, 0).numpy(), rtol=1e-5, atol=1e-6)
 
 
 def test_worker_threads_give_the_same_image_and_restore_thread_count():

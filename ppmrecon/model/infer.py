@@ -3,7 +3,8 @@
 The estimator is ``yhat_c = sum_j sum_{i in Omega_c} w^j_{c,i} (~y_i + ~z^j_c - ~z^j_i)``
 with the weights predicted by the network (see :mod:`ppmrecon.model.combine`).
 
-The image is processed in square tiles. Each tile is extended by a halo of
+The output is that combination clamped at 0 (radiance is nonnegative; see the note in
+:func:`_denoise`). The image is processed in square tiles. Each tile is extended by a halo of
 ``receptive radius + K//2`` pixels (clipped at the image border), so the logits and the
 window of every kept pixel see exactly what they would see on the whole image: tiled
 and untiled results agree up to floating-point rounding. Tiling bounds the memory of
@@ -179,4 +180,8 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
                 raise
     if not torch.isfinite(rgb).all():
         raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
+    # Terms y_i + z_c - z_i can be negative, so can their convex combination. Radiance is
+    # not: projecting onto [0, inf) never moves the estimate away from a nonnegative
+    # truth, so the result stays consistent (and Eq. 8 clips the same way in training).
+    rgb.clamp_(min=0.0)
     return Denoised(rgb.permute(1, 2, 0).contiguous().numpy(), weights.numpy())
