@@ -14,6 +14,7 @@ before a model has been trained.
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -41,17 +42,27 @@ NO_MODEL_HINT = ("no model given and no default model is installed; pass --model
 
 
 def build_parser() -> ArgumentParser:
-    p = ArgumentParser(prog=PROG, description="Denoise a ppmrecon buffer file with the consistent "
-                       "kernel-predicting combiner (Choi & Moon 2021).")
+    p = ArgumentParser(
+        prog=PROG, formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Denoise a ppmrecon buffer file with the consistent kernel-predicting combiner\n"
+                    "(Choi & Moon 2021): the output stays a convex combination of terms that\n"
+                    "converge to the true radiance, whatever the network predicts.",
+        epilog="examples:\n"
+               "  ppmrecon-denoise scene.exr --model run/model.pt\n"
+               "  ppmrecon-denoise scene.exr --model run/model.pt -o clean.exr --weights-layers\n"
+               "  ppmrecon-denoise --init-checkpoint untrained.pt --preset tiny")
     p.add_argument("input", nargs="?", metavar="INPUT.exr", help="buffer file written by ppmrecon-render")
-    p.add_argument("--model", metavar="CKPT", help="model checkpoint (.pt) from ppmrecon-train")
+    p.add_argument("--model", metavar="CKPT",
+                   help="model checkpoint (.pt) from ppmrecon-train (default: the model shipped with "
+                        "ppmrecon, if installed)")
     p.add_argument("--output", "-o", metavar="OUT.exr", help="output RGB EXR (default: INPUT_denoised.exr)")
     p.add_argument("--tile", type=positive_int, metavar="N",
                    help="tile side in pixels (default: automatic, bounded memory)")
     p.add_argument("--weights-layers", action="store_true",
                    help="also write weight.z1..weight.z4, the summed weight of each ~z^j")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="torch device (default: cpu)")
-    p.add_argument("--threads", type=positive_int, metavar="N", help="CPU threads for torch")
+    p.add_argument("--threads", type=positive_int, metavar="N",
+                   help="CPU threads; tiles are denoised side by side (default: all cores)")
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
                    help="network precision; auto = bfloat16 on CPUs with native bf16 (AMX/AVX512-BF16), "
                         "else float32. The combiner is always float32")

@@ -16,8 +16,8 @@ Numerical contract (what the tests check)
   (float32 for the denoiser). Pixels outside the image take the value of the nearest
   border pixel (replicate padding of both ~y and ~z), so every term is a valid one.
 * The output is **exactly** inside ``[min_{i,j} t, max_{i,j} t]`` of those evaluated
-  terms, for any logits (finite), any image size (1 x 1 included) and radiance from 0
-  to 1e8. A weighted mean of floats can leave the interval of its operands by a few
+  terms, for any finite logits, any image size (1 x 1 included) and radiance from 0
+  to 1e8 (anything whose terms stay within float32 range). A weighted mean of floats can leave the interval of its operands by a few
   ulps of rounding, so the result is clamped into the bounds, which are computed in
   the same call with exact operations (min/max pooling of ``y - z^j``, then ``+ z^j_c``,
   which is monotone and therefore commutes with min/max). The clamp is a no-op up to
@@ -155,12 +155,12 @@ def _numerator_loop(dpad: torch.Tensor, e: torch.Tensor, k: int) -> torch.Tensor
     b, _, h, w = e.shape
     d6 = dpad.view(b, N_CORRELATED, N_RGB, h + k - 1, w + k - 1)
     num = e.new_zeros(b, N_RGB, h, w)
-    for a in range(k):
-        for c in range(k):
-            base = N_CORRELATED * (a * k + c)
+    for row in range(k):
+        for col in range(k):
+            base = N_CORRELATED * (row * k + col)
             for j in range(N_CORRELATED):
                 # d^j at pixel c + offset (a view) times its weight plane, accumulated in place
-                num.addcmul_(d6[:, j, :, a:a + h, c:c + w], e[:, base + j:base + j + 1])
+                num.addcmul_(d6[:, j, :, row:row + h, col:col + w], e[:, base + j:base + j + 1])
     return num
 
 
