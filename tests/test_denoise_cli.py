@@ -186,3 +186,10 @@ def test_console_script_is_installed(tmp_path):
     bad = subprocess.run([exe, str(tmp_path / "nope.exr"), "--model", "m.pt"], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and "Traceback" not in bad.stderr
+
+
+def test_progress_bar_for_tiled_runs_and_summary(buffer_path, model, capsys):
+    assert main([str(buffer_path), "--model", str(model), "--tile", "8", "--threads", "1"]) == 0
+    captured = capsys.readouterr()
+    assert "denoise [" in captured.err and "15/15" in captured.err     # 3 x 5 tiles of 8 px
+    assert "scene_denoised.exr: 34x21 denoised with 'tiny'" in captured.out

@@ -40,7 +40,7 @@ O(H W) temporaries (inference on large images; no K^2-fold copy is ever built).
 from __future__ import annotations
 
 import math
-from typing import Literal, NamedTuple
+from typing import Callable, Literal, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -103,7 +103,8 @@ def _padded_differences(y: torch.Tensor, z: torch.Tensor, r: int) -> torch.Tenso
     return F.pad(d, (r, r, r, r), mode="replicate") if r else d
 
 
-def _sliding(x: torch.Tensor, k: int, dim: int, op) -> torch.Tensor:
+def _sliding(x: torch.Tensor, k: int, dim: int,
+             op: Callable[[torch.Tensor, torch.Tensor], torch.Tensor]) -> torch.Tensor:
     """``op``-reduce (torch.minimum/maximum) over windows of k along ``dim`` (valid part).
 
     Doubling (van Herk / sparse table): windows of 1, 2, 4, ... p <= k, then two
