@@ -148,7 +148,7 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             if cfg.grad_clip:
                 torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
             opt.step()
-            losses.append(float(loss))
+            losses.append(loss.item())
             progress.update(epoch * cfg.steps_per_epoch + step + 1, epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.4f}")
         val = _validate(model, val_samples, dev)
         record = {"epoch": epoch + 1, "loss": float(np.mean(losses)), "seconds": time.perf_counter() - t0,
