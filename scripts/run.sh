@@ -12,7 +12,7 @@ out="${PPMRECON_OUT:-$root/out}"
 mkdir -p "$out"
 "$venv/bin/ppmrecon-render" --passes 32 --resolution 256x256 "$@" --output "$out/default.exr"
 images=("$out/default.exr")
-if [ -x "$venv/bin/ppmrecon-denoise" ] && "$venv/bin/python" -c "import ppmrecon.model.infer as m, sys; sys.exit(0 if m.default_model_path().exists() else 1)" 2>/dev/null; then
+if "$venv/bin/python" -c "import sys, ppmrecon.model.checkpoint as c; sys.exit(0 if c.DEFAULT_MODEL.is_file() else 1)"; then
   "$venv/bin/ppmrecon-denoise" "$out/default.exr" --output "$out/default_denoised.exr"
   images+=("$out/default_denoised.exr")
 fi

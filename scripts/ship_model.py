@@ -1,0 +1,98 @@
+"""Ship a trained run as the package's default model, with its model card.
+
+    .venv/bin/python scripts/ship_model.py runs/cpu_tiny [--checkpoint best.pt]
+
+Copies the run's checkpoint to ``ppmrecon/data/models/default.pt`` and writes
+``default.md`` (the model card) and ``default_validation.png`` from the run's
+``history.json``, its checkpoint metadata and the data set's manifest: every figure in
+the card comes from those files.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint  # noqa: E402
+from ppmrecon.model.kpn import parameter_count  # noqa: E402
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path, help="run folder of `ppmrecon-train fit`")
+    ap.add_argument("--checkpoint", default="best.pt")
+    args = ap.parse_args()
+    ckpt_path = args.run / args.checkpoint
+    ckpt = load_checkpoint(ckpt_path)
+    history = json.loads((args.run / "history.json").read_text())
+    meta = ckpt.meta
+    data = Path(meta["data"])
+    manifest = json.loads((data / "manifest.json").read_text())
+    cfg = manifest["config"]
+    scenes = manifest["scenes"]
+    n_train = sum(s["split"] == "train" for s in scenes)
+    n_val = len(scenes) - n_train
+    families = sorted({s["family"] for s in scenes})
+    epochs = meta["epochs"]
+    train_seconds = sum(h["seconds"] for h in history[:epochs])
+    v = meta["val"]
+
+    DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(ckpt_path, DEFAULT_MODEL)
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5, 3.4))
+    ep = [h["epoch"] for h in history]
+    ax.plot(ep, [h["val"]["output"] for h in history], "o-", ms=3, label="model (validation relMSE)")
+    ax.plot(ep, [h["val"]["best_single"] for h in history], "--", label="best single input")
+    ax.set_yscale("log")
+    ax.set_xlabel("epoch")
+    ax.legend(fontsize=8)
+    ax.set_title(f"{meta['preset']} on {data.name}: validation at N = {history[-1]['val_passes']}", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(DEFAULT_MODEL.with_name("default_validation.png"), dpi=110)
+
+    tc = meta["train_config"]
+    lines = [
+        "# Model card: `default.pt`", "",
+        f"The model `ppmrecon-denoise` uses when `--model` is not given. Written by "
+        f"`scripts/ship_model.py {args.run}` from the run's files.", "",
+        "| | |", "|---|---|",
+        f"| architecture | preset `{meta['preset']}`: {ckpt.model.preset.layers} conv layers, "
+        f"{ckpt.model.preset.filters} filters {ckpt.model.preset.kernel}x{ckpt.model.preset.kernel}, "
+        f"window K = {ckpt.model.preset.window}, {parameter_count(ckpt.model)} parameters |",
+        f"| inputs | 27 channels (5 estimates, 5 variances, albedo, normal, depth), SPPM only |",
+        f"| data set | `{data}`: {len(scenes)} generated scenes ({', '.join(families)}), {n_train} train / "
+        f"{n_val} validation (split by scene), {cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
+        f"| inputs per scene | N = {', '.join(map(str, cfg['input_passes']))} passes x seeds {cfg['seeds']}, "
+        f"{cfg['photons']} photons/pass; {meta['train_images']} training images |",
+        f"| references | single-bandwidth SPPM, {cfg['reference_passes']} passes x {cfg['reference_photons']} photons |",
+        f"| data generation | {manifest.get('generation_seconds', 0) / 60:.1f} min wall on 2 shared CPU cores |",
+        f"| training | Adam lr {tc['lr']}, batch {tc['batch']} x {tc['patch']}x{tc['patch']} patches, "
+        f"{tc['steps_per_epoch']} steps/epoch, {epochs} epochs (checkpoint `{args.checkpoint}`), "
+        f"{train_seconds / 60:.1f} min wall on 2 shared CPU cores, D4 augmentation |",
+        f"| validation (N = {history[-1]['val_passes']}) | relMSE {v['output']:.4f} vs best single input "
+        f"{v['best_single']:.4f} (~{v['best_single_name']}): {v['ratio']:.2f}x |", "",
+        "![validation curve](default_validation.png)", "",
+        "| epoch | train loss (Eq. 8) | validation relMSE | best single input |", "|---|---|---|---|",
+    ]
+    for h in history:
+        lines.append(f"| {h['epoch']} | {h['loss']:.4f} | {h['val']['output']:.4f} | {h['val']['best_single']:.4f} |")
+    lines += ["", "Limits: trained on SPPM inputs only, on small generated scenes at 96x96; "
+              "the literature scenes were never seen. See benchmarks/results/quality.md for held-out numbers."]
+    DEFAULT_MODEL.with_name("default.md").write_text("\n".join(lines) + "\n")
+    print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
+
+
+if __name__ == "__main__":
+    main()
