@@ -17,7 +17,6 @@ the channel and the problem.
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -25,6 +24,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from .errors import UsageError
+from .fileio import atomic_write
 
 SCHEMA_VERSION = 1
 
@@ -169,12 +169,6 @@ def _header_value(key: str, value: Any) -> Any:
     raise UsageError(f"header attribute '{key}': unsupported type {type(value).__name__}")
 
 
-def _default_mode() -> int:
-    umask = os.umask(0)
-    os.umask(umask)
-    return 0o666 & ~umask
-
-
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
               header: Mapping[str, Any] | None = None) -> None:
     """Write ``channels`` (name -> (H, W) array) as a float32 ZIP scanline EXR, atomically.
@@ -201,22 +195,11 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray],
     for key, value in (header or {}).items():
         hdr[key] = _header_value(key, value)
 
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise UsageError(f"{path}: output folder '{folder}' does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
+    def write(tmp: str) -> None:
         with OpenEXR.File(hdr, data) as f:
             f.write(tmp)
-        os.chmod(tmp, _default_mode())  # mkstemp makes 0600; outputs get the usual umask
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+
+    atomic_write(path, write)
 
 
 def write_buffers(path: str | os.PathLike, buf: BufferFile) -> None:

@@ -7,14 +7,13 @@ from __future__ import annotations
 
 import os
 import struct
-import tempfile
 import zlib
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from .buffers import _default_mode
+from .fileio import atomic_write
 
 
 def to_srgb8(rgb: np.ndarray, exposure: float = 1.0) -> np.ndarray:
@@ -34,16 +33,7 @@ def write_png(path: str | os.PathLike, rgb8: np.ndarray) -> None:
 
     png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 2, 0, 0, 0))
            + chunk(b"IDAT", zlib.compress(raw, 6)) + chunk(b"IEND", b""))
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(png)
-        os.chmod(tmp, _default_mode())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda tmp: Path(tmp).write_bytes(png))
 
 
 def side_by_side(images: Sequence[np.ndarray], gap: int = 4, exposure: float = 1.0) -> np.ndarray:

@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import os
 import pickle
-import tempfile
 from pathlib import Path
 from typing import Any, Mapping, NamedTuple
 
 import torch
 
-from ..buffers import SCHEMA_VERSION, _default_mode
+from ..buffers import SCHEMA_VERSION
 from ..errors import UsageError
+from ..fileio import atomic_write
 from .features import FeatureConfig
 from .kpn import DEFAULT_PRESET, KPN, Preset, build
 
@@ -54,21 +54,7 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
         "state_dict": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
         "meta": dict(meta or {}),
     }
-    folder = path.parent if str(path.parent) else Path(".")
-    if not folder.is_dir():
-        raise UsageError(f"{path}: output folder '{folder}' does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
-    os.close(fd)
-    try:
-        torch.save(payload, tmp)
-        os.chmod(tmp, _default_mode())  # mkstemp makes 0600; like other outputs, honour the umask
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    atomic_write(path, lambda tmp: torch.save(payload, tmp))
 
 
 def init_checkpoint(path: str | os.PathLike, preset: Preset | str = DEFAULT_PRESET,

@@ -28,6 +28,7 @@ from typing import Any
 from .. import buffers as B
 from ..cli_common import Progress
 from ..errors import UsageError
+from ..fileio import load_json_config, read_json, write_json
 from .scenegen import family_of, sample_params
 
 MANIFEST = "manifest.json"
@@ -51,18 +52,7 @@ class DataConfig:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "DataConfig":
-        path = Path(path)
-        try:
-            raw = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise UsageError(f"{path}: no such data config") from None
-        except json.JSONDecodeError as exc:
-            raise UsageError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-        raw = {k: v for k, v in raw.items() if not k.startswith("_")}
-        unknown = set(raw) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise UsageError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}")
-        cfg = cls(**raw)
+        cfg = load_json_config(path, cls, "data config")
         cfg.resolution = tuple(cfg.resolution)  # type: ignore[assignment]
         cfg.input_passes = tuple(sorted(cfg.input_passes))  # type: ignore[assignment]
         cfg.seeds = tuple(cfg.seeds)  # type: ignore[assignment]
@@ -166,21 +156,10 @@ def _work_item(job: dict[str, Any]) -> dict[str, Any]:
             "wall_seconds": time.perf_counter() - t0}
 
 
-def _write_manifest(path: Path, manifest: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, path)
-
-
 def load_manifest(root: str | os.PathLike) -> dict[str, Any]:
     """Read ``root/manifest.json`` with a one-line error when absent or broken."""
     path = Path(root) / MANIFEST
-    try:
-        manifest = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise UsageError(f"{path}: no manifest; generate data with `ppmrecon-train generate --out {root}`") from None
-    except json.JSONDecodeError as exc:
-        raise UsageError(f"{path}: broken manifest ({exc.msg} at line {exc.lineno})") from None
+    manifest = read_json(path, "manifest", f"generate data with `ppmrecon-train generate --out {root}`")
     if manifest.get("version", 0) > MANIFEST_VERSION:
         raise UsageError(f"{path}: manifest version {manifest.get('version')} is newer than this ppmrecon")
     return manifest
@@ -223,7 +202,7 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
             s.pop("reference", None)
             jobs.append({"kind": "reference", "id": s["id"], "scene_seed": s["seed"], "params": s["params"],
                          "folder": str(folder), "config": asdict(cfg), "threads": threads})
-    _write_manifest(mpath, manifest)
+    write_json(mpath, manifest)
 
     by_id = {s["id"]: s for s in scenes}
     progress = Progress(f"ppmrecon-train generate {root}", total=len(jobs), quiet=quiet)
@@ -241,9 +220,9 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
                     s["inputs"] = sorted(s["inputs"] + res["files"], key=lambda f: (f["seed"], f["passes"]))
                 s["seconds"] = s.get("seconds", 0.0) + res["wall_seconds"]
                 results.append(res)
-                _write_manifest(mpath, manifest)
+                write_json(mpath, manifest)
                 progress.update(k, force=True, scene=res["id"])
     progress.close()
     manifest["generation_seconds"] = manifest.get("generation_seconds", 0.0) + (time.perf_counter() - t0)
-    _write_manifest(mpath, manifest)
+    write_json(mpath, manifest)
     return manifest

@@ -24,6 +24,7 @@ import torch
 from ..buffers import ESTIMATES
 from ..cli_common import Progress
 from ..errors import UsageError
+from ..fileio import load_json_config, write_json
 from ..metrics import relmse
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
@@ -58,18 +59,7 @@ class TrainConfig:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "TrainConfig":
-        path = Path(path)
-        try:
-            raw = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise UsageError(f"{path}: no such training config") from None
-        except json.JSONDecodeError as exc:
-            raise UsageError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno})") from None
-        raw = {k: v for k, v in raw.items() if not k.startswith("_")}
-        unknown = set(raw) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise UsageError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}")
-        return cls(**raw)
+        return load_json_config(path, cls, "training config")
 
 
 def _validate(model: torch.nn.Module, samples: list[Sample], device: torch.device) -> dict[str, float]:
@@ -162,9 +152,7 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             best = val["output"]
             save_checkpoint(out / BEST, model, meta)
         torch.save({"optimizer": opt.state_dict(), "epoch": epoch + 1}, out / STATE)
-        tmp = out / f".{HISTORY}.tmp"
-        tmp.write_text(json.dumps(history, indent=1))
-        os.replace(tmp, out / HISTORY)
+        write_json(out / HISTORY, history)
         if not quiet:
             progress.close()
             v = f" val relMSE {val['output']:.4f} vs best input {val['best_single']:.4f} ({val['best_single_name']})" if val else ""
