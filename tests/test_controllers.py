@@ -67,6 +67,27 @@ def test_chi2_statistic_and_critical_values_match_scipy():
     assert H.cppm_test([np.zeros(1)] * H.N_CELLS, H.chi2_critical(0.05))[1].all()  # no photons: pass
 
 
+def test_chi2_from_gather_accumulated_counts_matches_scipy():
+    """Photons filed one per call by CellStatistics.add (the gather's scatter), counted
+    per cell, tested with the Dr.Jit ops: the same X^2 as scipy on the explicit cells."""
+    rng = np.random.default_rng(5)
+    u, v, d2 = disc_photons(rng, 300)
+    u = 0.8 * (u + 0.3 * np.abs(u))  # a mild density gradient, so X^2 is not tiny
+    d2 = u * u + v * v
+    cells = numpy_cells(u, v, d2, 1.0)
+    st = CellStatistics(2, "counts")
+    pixel, active = mi.UInt32([0, 1]), mi.Bool([True, False])
+    for c in cells:
+        st.add(pixel, mi.UInt32(np.array([c, 0], np.uint32)), mi.Color3f(1.0), active)
+        dr.eval(st.data)
+    counts = st.cell_counts()
+    np.testing.assert_array_equal([np.asarray(c)[0] for c in counts], np.bincount(cells, minlength=12))
+    for n_cells in (H.N_SECTORS, H.N_CELLS):
+        ours = float(H.pearson_chi2(counts[:n_cells], DRJIT_OPS)[0])
+        ref = sps.chisquare(np.bincount(cells, minlength=12)[:n_cells]).statistic
+        assert ours == pytest.approx(ref, rel=1e-9)
+
+
 def _expand_groups(cells, psi):
     """The ANOVA samples spelled out: every photon is one sample of each group, its
     contribution in its own cell and 0 in the others (paper 000 Sec. 3.2.1)."""
@@ -325,3 +346,36 @@ def test_cli_method_options_reach_controller():
         make_controller("fppm", beta=2.0)
     assert isinstance(make_controller("cppm", defaults={"knn": 7}), CPPMController)
     assert make_controller("cppm", defaults={"knn": 7}).knn == 7
+
+
+def test_gather_statistics_agree_with_flux_and_counts():
+    """Inside the gather loop: the cell counts add up to the gather's photon count and
+    the cell sums of psi = luminance(f Phi) to pi r^2 x luminance(flux) (constant
+    kernel), per pixel and chain slot; per-channel sums likewise per channel."""
+    from ppmrecon.render.eye import trace_eye
+    from ppmrecon.render.gather import gather
+    from ppmrecon.render.grid import build_grid
+    from ppmrecon.render.photons import trace_photons
+
+    loaded = load_scene("cornell_caustics", resolution=(24, 24))
+    sensor = loaded.scene.sensors()[0]
+    pm = trace_photons(loaded.scene, 1 << 14, 3, 8)
+    gp = trace_eye(loaded.scene, sensor, 4, 8)
+    n = 24 * 24
+    rng = np.random.default_rng(0)
+    radii = [mi.Float(rng.uniform(0.02, 0.08, n).astype(np.float32)) for _ in range(2)]
+    grid = build_grid(pm, 0.08)
+    counts = [CellStatistics(n, "counts") for _ in radii]
+    res = gather(gp, radii, grid, "constant", counts)
+    moments = [CellStatistics(n, "moments", 3) for _ in radii]
+    res_m = gather(gp, radii, grid, "constant", moments)
+    for s in range(2):
+        total = np.sum([np.asarray(c) for c in counts[s].cell_counts()], axis=0)
+        np.testing.assert_array_equal(total, np.asarray(res.count[s]))
+        assert total.sum() > 1000
+        area = np.pi * np.square(np.asarray(radii[s], np.float64))
+        flux = np.asarray(res_m.flux[s], np.float64)  # (3, n)
+        for ch in range(3):
+            sums, _ = moments[s].cell_moments(ch)
+            cell_total = np.sum([np.asarray(x) for x in sums], axis=0)
+            np.testing.assert_allclose(cell_total, flux[ch] * area, rtol=2e-4, atol=1e-6 * np.abs(flux[ch] * area).max())

@@ -33,6 +33,7 @@ from typing import TYPE_CHECKING
 import drjit as dr
 import mitsuba as mi
 
+from .controllers import DRJIT_OPS
 from .eye import GatherPoints
 from .grid import PhotonGrid, cell_hash, cell_of
 from .hypothesis import cell_index, sector_index
@@ -58,8 +59,6 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
     0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
     slot) also accumulate the per-cell statistics of the photons inside each radius."""
-    from .controllers import DRJIT_OPS
-
     if stats is not None and len(stats) != len(radii):
         raise ValueError("gather: one statistics target per chain slot")
     n_slots = len(radii)
