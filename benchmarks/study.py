@@ -195,6 +195,8 @@ def plots(report: dict, fig_dir: Path) -> None:
             ax.loglog(n, [x[name] for x in c], "o-", ms=3, label=label)
         ax.set_title(key, fontsize=9)
         ax.set_xlabel("passes")
+        ax.minorticks_off()
+        ax.set_xticks(n, [str(k) for k in n], fontsize=7)
     axes[0][0].set_ylabel("relMSE")
     axes[0][0].legend(fontsize=7)
     fig.tight_layout()
