@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from ppmrecon import buffers as B
 
@@ -30,3 +31,13 @@ def make_buffer(h: int = 6, w: int = 7, seed: int = 0) -> B.BufferFile:
 @pytest.fixture
 def buffer_file() -> B.BufferFile:
     return make_buffer()
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Small tensors on 2 shared cores run several times faster on one thread (and torch
+    with 2 threads collapses when another job shares the cores)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -19,13 +19,6 @@ from ppmrecon.model.combine import (
 SCALES = [0.0, 1e-6, 1.0, 1e3, 1e8]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors on 2 shared cores run several times faster on one thread."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def reference(y: np.ndarray, z: np.ndarray, logits: np.ndarray, k: int):

@@ -22,13 +22,6 @@ from ppmrecon.train.loss import relative_log_l1
 from tests.conftest import make_buffer
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Small tensors on 2 shared cores run several times faster on one thread."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------- presets

@@ -14,7 +14,6 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-import numpy as np
 
 from .. import buffers as B
 from ..backend import VARIANTS, choose_variant

@@ -19,7 +19,6 @@ decorrelation study of paper 002 Fig. 11).
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
