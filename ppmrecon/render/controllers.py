@@ -252,7 +252,11 @@ class FPPMController:
     r_min is ``r_min_frac`` times the chain's initial radius at that pixel (the paper
     leaves it open; its VCM+ experiments use 0.1% of r_1). It only binds where the test
     keeps rejecting; then the radius follows SPPM's (i + 1)^((alpha - 1) / 2) decay,
-    which keeps the method consistent (paper 000 Sec. 5.2).
+    which keeps the method consistent (paper 000 Sec. 5.2). Measured over 256 passes
+    (benchmarks/results/full/methods.md, five chains): with 0.25 the bound governs at
+    most ~5% of the ~z^4 pixels and the results equal those of 0.05; with 1.0 (never
+    below SPPM's schedule) the small bandwidths gain ~5% relMSE but ~z^4 loses 10-25%
+    at light and caustic edges, where it can no longer shrink.
 
     Samples: each photon inside the disc counts as one sample for every cell (SPEC
     section 4). The paper counts all J emitted light paths (zeros included, m = tJ);
