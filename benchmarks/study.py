@@ -33,10 +33,16 @@ from bench_quality import LITERATURE, oidn  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.backend import choose_variant  # noqa: E402
-from ppmrecon.metrics import relmse  # noqa: E402
+from ppmrecon.metrics import relmse, relmse_trimmed  # noqa: E402
 
 METHODS = ("sppm", "cppm", "fppm")
 BUILTIN = ("cornell_caustics", "water_caustic")
+#: Fraction of worst pixels left out of the trimmed relMSE (fireflies).
+TRIM = 1e-3
+#: relMSE ratios within this of 1 are called a tie (one seed per entry).
+TIE = 0.05
+#: The equal-time entries, in table order.
+NAMES = ["sppm", "cppm", "fppm", "oidn+sppm", "ours+sppm", "ours+cppm", "ours+fppm"]
 
 
 def renderer(scene, name, layout, method, photons, seed, passes=None, budget=None):
@@ -68,11 +74,75 @@ def single_as_buffer(res) -> B.BufferFile:
     return B.BufferFile(est, var, rad, res.albedo, res.normal, res.depth, dict(res.header))
 
 
+def score(img: np.ndarray, ref: np.ndarray) -> dict:
+    return {"relmse": relmse(img, ref), "relmse_trim": relmse_trimmed(img, ref, TRIM)}
+
+
+def references(scenes: dict, width: int, photons: int, passes: int, cache: Path) -> dict:
+    """Two independent single-bandwidth SPPM references per scene (cached as EXR)."""
+    from ppmrecon.render.scene import load_scene
+
+    out = {}
+    for key, spec in scenes.items():
+        loaded = load_scene(spec, resolution=width)
+        refs = []
+        for seed in (1001, 1002):
+            path = cache / f"{key}_{width}_{passes}x{photons}_s{seed}.exr"
+            if not path.exists():
+                t = time.perf_counter()
+                res = renderer(loaded.scene, key, "single", "sppm", photons, seed, passes=passes).run()
+                B.write_rgb(path, res.estimates[0], header=res.header)
+                print(f"{key}: reference seed {seed} in {time.perf_counter() - t:.0f}s", flush=True)
+            refs.append(B.read_rgb(path)[0])
+        out[key] = (loaded, refs)
+    return out
+
+
+def preset_trade(models: dict, buffers: dict, singles: dict, refs: dict) -> list[dict]:
+    """Inference time at 1280x720 against relMSE on the study's five-chain SPPM buffers,
+    per trained model (one per preset), with OIDN on the single-chain SPPM image beside."""
+    from bench_denoise import synthetic_buffer
+
+    from ppmrecon.model.checkpoint import load_checkpoint
+
+    big = synthetic_buffer(1280, 720)
+    rows = []
+    for name, path in models.items():
+        ckpt = load_checkpoint(path)
+        times = [timed_denoise(big, ckpt.model)[1]]
+        if times[0] < 20:                        # a second run for the cheap ones: the first pays warm-up
+            times.append(timed_denoise(big, ckpt.model)[1])
+        per_scene = {k: score(timed_denoise(buf, ckpt.model)[0], refs[k]) for k, buf in buffers.items()}
+        rows.append({"name": name, "path": str(path), "preset": ckpt.meta.get("preset", "?"),
+                     "parameters": sum(p.numel() for p in ckpt.model.parameters()),
+                     "epochs": ckpt.meta.get("epochs"), "train_seconds": ckpt.meta.get("train_seconds"),
+                     "seconds_720p": min(times), "scenes": per_scene})
+        print(f"preset {name}: {min(times):.2f}s at 1280x720", flush=True)
+    t_oidn = min(timed_oidn(big, 1)[1] for _ in range(2))
+    rows.append({"name": "OIDN (SPPM image)", "path": "", "preset": "oidn", "parameters": None, "epochs": None,
+                 "train_seconds": None, "seconds_720p": t_oidn,
+                 "scenes": {k: score(timed_oidn(single_as_buffer(res), 0)[0], refs[k]) for k, res in singles.items()}})
+    return rows
+
+
+def parse_models(items: list[str]) -> dict[str, Path]:
+    out = {}
+    for item in items:
+        name, sep, path = item.partition("=")
+        if not sep or not Path(path).is_file():
+            sys.exit(f"study.py: --preset-model {item!r}: expected NAME=PATH to an existing checkpoint")
+        out[name] = Path(path)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=Path, required=True, help="folder of the literature scenes")
     ap.add_argument("--model", type=Path, default=ROOT / "ppmrecon" / "data" / "models" / "default.pt")
+    ap.add_argument("--preset-model", action="append", default=[], metavar="NAME=PATH",
+                    help="a trained checkpoint for the preset trade (repeat; default: only --model)")
     ap.add_argument("--quick", action="store_true", help="small sizes and budgets (< 15 min on 2 cores)")
+    ap.add_argument("--refs-only", action="store_true", help="render (and cache) the references, then stop")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
     q = args.quick
@@ -85,33 +155,30 @@ def main() -> None:
 
     from ppmrecon.model.checkpoint import load_checkpoint
     from ppmrecon.preview import side_by_side, write_png
-    from ppmrecon.render.scene import load_scene
 
     model = load_checkpoint(args.model).model
+    preset_models = parse_models(args.preset_model) or {"default": args.model}
     width = 64 if q else 128
     photons = 1 << (14 if q else 16)
     budgets = (3.0, 9.0) if q else (15.0, 60.0)
     ref_passes = 256 if q else 1024
     doublings = [2, 4, 8, 16, 32, 64] if q else [4, 8, 16, 32, 64, 128]
+    preset_passes = 32
     scenes = {k: args.scenes / v for k, v in LITERATURE.items()}
     scenes.update({k: k for k in BUILTIN})
-    report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
-                    "cpus": os.cpu_count(), "model": str(args.model), "scenes": {}}
     t_all = time.perf_counter()
-    for key, spec in scenes.items():
-        loaded = load_scene(spec, resolution=width)
+    reference_sets = references(scenes, width, photons, ref_passes, cache)
+    if args.refs_only:
+        return
+    report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
+                    "cpus": os.cpu_count(), "model": str(args.model), "trim": TRIM, "scenes": {}}
+    t_all = time.perf_counter()
+    preset_buffers, preset_singles, ref_of = {}, {}, {}
+    for key, (loaded, refs) in reference_sets.items():
         sc = loaded.scene
-        entry: dict = {"resolution": f"{loaded.width}x{loaded.height}"}
-        # references: two independent single-bandwidth SPPM renders
-        refs = []
-        for seed in (1001, 1002):
-            path = cache / f"{key}_{width}_{ref_passes}x{photons}_s{seed}.exr"
-            if not path.exists():
-                res = renderer(sc, key, "single", "sppm", photons, seed, passes=ref_passes).run()
-                B.write_rgb(path, res.estimates[0], header=res.header)
-            refs.append(B.read_rgb(path)[0])
-        ref = 0.5 * (refs[0] + refs[1])
-        entry["reference_agreement_relmse"] = relmse(refs[0], refs[1])
+        ref = ref_of[key] = 0.5 * (refs[0] + refs[1])
+        entry: dict = {"resolution": f"{loaded.width}x{loaded.height}",
+                       "reference_agreement_relmse": relmse(refs[0], refs[1])}
 
         # warm-up: compile every configuration once, measure per-pass costs
         overhead = {}
@@ -137,17 +204,17 @@ def main() -> None:
             row: dict = {"budget": budget}
             for method in METHODS:
                 res = renderer(sc, key, "single", method, photons, 11, budget=budget).run()
-                row[f"{method}"] = {"passes": res.passes, "relmse": relmse(res.estimates[0], ref)}
+                row[method] = {"passes": res.passes, **score(res.estimates[0], ref)}
                 if method == "sppm":
                     sppm_img = res.estimates[0]
                     t_oidn = timed_oidn(single_as_buffer(res), 0)[1]
                     res_o = renderer(sc, key, "single", method, photons, 12, budget=max(budget - t_oidn, 0.1)).run()
                     img_o, t_oidn = timed_oidn(single_as_buffer(res_o), 0)
-                    row["oidn+sppm"] = {"passes": res_o.passes, "relmse": relmse(img_o, ref), "inference": t_oidn}
+                    row["oidn+sppm"] = {"passes": res_o.passes, "inference": t_oidn, **score(img_o, ref)}
                 t_inf = overhead[method]["inference"]
                 res_m = renderer(sc, key, "multi", method, photons, 13, budget=max(budget - t_inf, 0.1)).run()
                 img_m, t_inf = timed_denoise(res_m.buffer_file(), model)
-                row[f"ours+{method}"] = {"passes": res_m.passes, "relmse": relmse(img_m, ref), "inference": t_inf}
+                row[f"ours+{method}"] = {"passes": res_m.passes, "inference": t_inf, **score(img_m, ref)}
                 if method == "sppm" and budget == budgets[-1]:
                     crops = [sppm_img, img_o, img_m, ref]
             equal.append(row)
@@ -157,22 +224,30 @@ def main() -> None:
         # consistency curves (SPPM, ours + SPPM, OIDN + SPPM)
         ns = set(doublings)
         curve = {n: {} for n in doublings}
-        r_multi = renderer(sc, key, "multi", "sppm", photons, 21, passes=max(doublings))
-        r_multi.run(lambda rr: curve[rr.passes_done].update(
-            ours=relmse(timed_denoise(rr.result().buffer_file(), model)[0], ref)) if rr.passes_done in ns else None)
-        r_single = renderer(sc, key, "single", "sppm", photons, 22, passes=max(doublings))
+
+        def on_multi(rr):
+            if rr.passes_done in ns:
+                buf = rr.result().buffer_file()
+                curve[rr.passes_done].update(ours=relmse(timed_denoise(buf, model)[0], ref))
+                if rr.passes_done == preset_passes:
+                    preset_buffers[key] = buf
 
         def on_single(rr):
             if rr.passes_done in ns:
                 res = rr.result()
                 curve[rr.passes_done].update(sppm=relmse(res.estimates[0], ref),
                                              oidn=relmse(timed_oidn(single_as_buffer(res), 0)[0], ref))
+                if rr.passes_done == preset_passes:
+                    preset_singles[key] = res
 
-        r_single.run(on_single)
+        renderer(sc, key, "multi", "sppm", photons, 21, passes=max(doublings)).run(on_multi)
+        renderer(sc, key, "single", "sppm", photons, 22, passes=max(doublings)).run(on_single)
         entry["consistency"] = [{"passes": n, **curve[n]} for n in doublings]
         report["scenes"][key] = entry
         print(f"{key}: done ({time.perf_counter() - t_all:.0f}s so far)", flush=True)
 
+    report["preset_passes"] = preset_passes
+    report["presets"] = preset_trade(preset_models, preset_buffers, preset_singles, ref_of)
     report["seconds"] = time.perf_counter() - t_all
     (args.out / "results.json").write_text(json.dumps(report, indent=1))
     plots(report, fig_dir)
@@ -203,7 +278,7 @@ def plots(report: dict, fig_dir: Path) -> None:
     fig.savefig(fig_dir / "consistency.png", dpi=110)
 
     fig, axes = plt.subplots(1, len(keys), figsize=(3.2 * len(keys), 3.0), squeeze=False)
-    names = ["sppm", "cppm", "fppm", "oidn+sppm", "ours+sppm", "ours+cppm", "ours+fppm"]
+    names = NAMES
     for ax, key in zip(axes[0], keys):
         row = report["scenes"][key]["equal_time"][-1]
         ax.bar(range(len(names)), [row[n]["relmse"] for n in names],
@@ -215,38 +290,111 @@ def plots(report: dict, fig_dir: Path) -> None:
     fig.tight_layout()
     fig.savefig(fig_dir / "equal_time.png", dpi=110)
 
+    fig, ax = plt.subplots(figsize=(4.2, 3.2))
+    for p in report["presets"]:
+        ax.loglog(p["seconds_720p"], preset_mean(p), "s" if p["preset"] == "oidn" else "o")
+        ax.annotate(p["name"], (p["seconds_720p"], preset_mean(p)), fontsize=8, xytext=(4, 4),
+                    textcoords="offset points")
+    ax.set_xlabel("seconds per 1280x720 image")
+    ax.set_ylabel(f"mean relMSE, N={report['preset_passes']}")
+    fig.tight_layout()
+    fig.savefig(fig_dir / "presets.png", dpi=110)
+
+
+def summary_rows(r: dict) -> list[str]:
+    """Per scene and budget: our best entry against the best of the others."""
+    lines = []
+    for key, e in r["scenes"].items():
+        for row in e["equal_time"]:
+            ours = min((n for n in NAMES if n.startswith("ours")), key=lambda n: row[n]["relmse"])
+            other = min((n for n in NAMES if not n.startswith("ours")), key=lambda n: row[n]["relmse"])
+            ratio = row[ours]["relmse"] / row[other]["relmse"]
+            ratio_t = row[ours]["relmse_trim"] / row[other]["relmse_trim"]
+            verdict = "tie" if abs(ratio - 1) < TIE else ("**win**" if ratio < 1 else "loss")
+            lines.append(f"| {key} | {row['budget']:.0f}s | {ours} {row[ours]['relmse']:.3g} | "
+                         f"{other} {row[other]['relmse']:.3g} | {ratio:.2f}x | {ratio_t:.2f}x | {verdict} |")
+    return lines
+
 
 def markdown(r: dict) -> str:
-    names = ["sppm", "cppm", "fppm", "oidn+sppm", "ours+sppm", "ours+cppm", "ours+fppm"]
+    names = NAMES
+    trim = f"{100 * r['trim']:g}%"
     lines = ["# Results: speed and accuracy", "",
              f"Generated by `benchmarks/study.py{' --quick' if r['quick'] else ''}` on {r['cpus']} CPU cores in "
-             f"{r['seconds'] / 60:.1f} min; model `{Path(r['model']).name}`. Scenes at width {r['width']} "
-             f"(aspect kept), {r['photons']} photons per pass. References: single-bandwidth SPPM, "
-             f"{r['reference_passes']} passes, mean of two independent renders.", "",
+             f"{r['seconds'] / 60:.1f} min (references not counted); model `{Path(r['model']).name}`. Scenes at "
+             f"width {r['width']} (aspect kept), {r['photons']} photons per pass. References: single-bandwidth SPPM, "
+             f"{r['reference_passes']} passes, mean of two independent renders; their *agreement* is the relMSE "
+             "between the two, and the mean's own noise is about a quarter of it.", "",
+             "relMSE as SPEC section 7 (eps 0.01); *trimmed* leaves out the "
+             f"{trim} of pixels with the largest error, so that a few fireflies do not decide the figure.", "",
+             "## Where we win and where we lose", "",
+             "Equal wall-clock time, multi-bandwidth overhead and inference included. *ours* is the best of "
+             "ours+SPPM/CPPM/FPPM; *other* the best of SPPM, CPPM, FPPM and OIDN+SPPM. Ratio < 1: ours is better; "
+             f"within {100 * TIE:g}% of 1 is called a tie (each entry is one seed).", "",
+             "| scene | budget | best ours | best other | relMSE ratio | trimmed ratio | |",
+             "|---|---|---|---|---|---|---|", *summary_rows(r), "",
              "## Equal-time comparison (relMSE, passes reached)", ""]
     for key, e in r["scenes"].items():
-        lines += [f"### {key} ({e['resolution']}; reference agreement relMSE {e['reference_agreement_relmse']:.2e})", "",
+        agree = e["reference_agreement_relmse"]
+        lines += [f"### {key} ({e['resolution']}; reference agreement relMSE {agree:.2e}, "
+                  f"so the reference's noise is ~{agree / 4:.1e})", "",
                   "| budget | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
         for row in e["equal_time"]:
             best = min(row[n]["relmse"] for n in names)
-            cells = [(f"**{row[n]['relmse']:.4f}**" if row[n]["relmse"] == best else f"{row[n]['relmse']:.4f}")
+            cells = [(f"**{row[n]['relmse']:.3g}**" if row[n]["relmse"] == best else f"{row[n]['relmse']:.3g}")
                      + f" ({row[n]['passes']})" for n in names]
             lines.append(f"| {row['budget']:.0f}s | " + " | ".join(cells) + " |")
         lines += ["", f"![{key}](figures/equal_time_{key}.png)  ", "SPPM | OIDN + SPPM | ours + SPPM | reference "
-                  f"(largest budget)", ""]
-    lines += ["![equal time](figures/equal_time.png)", "", "## Consistency (relMSE against passes)", "",
-              "![consistency](figures/consistency.png)", "", "| scene | N | SPPM | OIDN + SPPM | ours + SPPM |",
-              "|---|---|---|---|---|"]
+                  "(largest budget)", ""]
+    lines += ["![equal time](figures/equal_time.png)", "",
+              f"### Trimmed relMSE ({trim} worst pixels left out), largest budget", "",
+              "| scene | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    for key, e in r["scenes"].items():
+        row = e["equal_time"][-1]
+        best = min(row[n]["relmse_trim"] for n in names)
+        lines.append(f"| {key} | " + " | ".join(f"**{row[n]['relmse_trim']:.3g}**" if row[n]["relmse_trim"] == best
+                                                 else f"{row[n]['relmse_trim']:.3g}" for n in names) + " |")
+    lines += ["", "## Consistency (relMSE against passes)", "",
+              "![consistency](figures/consistency.png)", "",
+              "Slope: least-squares slope of log relMSE against log N over the last three points "
+              "(0 = flat; SPPM's variance alone would give about -1 at best).", "",
+              "| scene | N | SPPM | OIDN + SPPM | ours + SPPM |", "|---|---|---|---|---|"]
     for key, e in r["scenes"].items():
         for x in e["consistency"]:
-            lines.append(f"| {key} | {x['passes']} | {x['sppm']:.5f} | {x['oidn']:.5f} | {x['ours']:.5f} |")
+            lines.append(f"| {key} | {x['passes']} | {x['sppm']:.3g} | {x['oidn']:.3g} | {x['ours']:.3g} |")
+        slopes = [f"{tail_slope(e['consistency'], k):+.2f}" for k in ("sppm", "oidn", "ours")]
+        lines.append(f"| {key} | slope | " + " | ".join(slopes) + " |")
     lines += ["", "## Overheads (after paper 002 Table 2)", "",
               "| scene | method | s/pass, 1 chain | s/pass, 5 chains | pass overhead | inference |", "|---|---|---|---|---|---|"]
     for key, e in r["scenes"].items():
         for m, o in e["overhead"].items():
             lines.append(f"| {key} | {m} | {o['single_pass']:.3f} | {o['multi_pass']:.3f} | "
                          f"{o['pass_overhead_pct']:+.0f}% | {o['inference']:.3f}s |")
+    keys = list(r["scenes"])
+    lines += ["", "## Speed trade: model presets", "",
+              f"Inference at 1280x720 (synthetic buffer, best of two runs when under 20 s) against relMSE on the "
+              f"study scenes' five-chain SPPM buffers at N={r['preset_passes']}; OIDN is applied to the "
+              "single-chain SPPM image at the same N. Each preset was trained on the same data for the stated time "
+              "on this CPU, so larger presets are further from converged.", "",
+              "![presets](figures/presets.png)", "",
+              "| model | preset | parameters | trained | s at 1280x720 | mean relMSE | " + " | ".join(keys) + " |",
+              "|---" * (6 + len(keys)) + "|"]
+    for p in r["presets"]:
+        trained = (f"{p['epochs']} ep, {p['train_seconds'] / 60:.0f} min" if p.get("train_seconds") else "-")
+        params = f"{p['parameters']:,}" if p["parameters"] else "-"
+        lines.append(f"| {p['name']} | {p['preset']} | {params} | {trained} | {p['seconds_720p']:.2f} | "
+                     f"{preset_mean(p):.4g} | " + " | ".join(f"{p['scenes'][k]['relmse']:.3g}" for k in keys) + " |")
     return "\n".join(lines) + "\n"
+
+
+def preset_mean(p: dict) -> float:
+    return float(np.mean([v["relmse"] for v in p["scenes"].values()]))
+
+
+def tail_slope(curve: list[dict], key: str, points: int = 3) -> float:
+    n = np.log([x["passes"] for x in curve[-points:]])
+    e = np.log([x[key] for x in curve[-points:]])
+    return float(np.polyfit(n, e, 1)[0])
 
 
 if __name__ == "__main__":

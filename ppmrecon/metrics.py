@@ -41,3 +41,12 @@ def relmse(est: Any, ref: Any, channel_axis: int = -1) -> Any:
     """relMSE averaged over all pixels: a float for numpy input, a 0-d tensor for torch."""
     m = relmse_map(est, ref, channel_axis)
     return m.mean() if isinstance(m, torch.Tensor) else float(m.mean())
+
+
+def relmse_trimmed(est: np.ndarray, ref: np.ndarray, discard: float = 1e-3, channel_axis: int = -1) -> float:
+    """relMSE over the pixels left after dropping the ``discard`` fraction with the largest
+    error, as denoising comparisons often report next to plain relMSE: a handful of
+    fireflies can otherwise decide the whole figure."""
+    m = np.sort(relmse_map(est, ref, channel_axis).ravel())
+    keep = max(1, int(round(m.size * (1.0 - discard))))
+    return float(m[:keep].mean())

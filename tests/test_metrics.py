@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from ppmrecon.metrics import relmse, relmse_map
+from ppmrecon.metrics import relmse, relmse_map, relmse_trimmed
 from ppmrecon.train.loss import relative_log_l1, relative_log_l1_map
 
 
@@ -99,3 +99,13 @@ def test_loss_zero_for_exact_and_gradient_sign():
     pred = (target + 0.1).requires_grad_()
     relative_log_l1(pred, target).backward()
     assert bool((pred.grad > 0).all())                  # over-estimates are pushed down
+
+
+def test_trimmed_relmse_drops_only_the_worst_pixels():
+    ref = np.full((100, 100, 3), 0.5)
+    est = ref + 0.1
+    est[3, 7] = 1e4                                   # one firefly among 10^4 pixels
+    plain, trimmed = relmse(est, ref), relmse_trimmed(est, ref, discard=1e-4)
+    assert plain > 1e3
+    assert trimmed == pytest.approx(0.01 / 0.26, rel=1e-12)
+    assert relmse_trimmed(est, ref, discard=0.0) == pytest.approx(plain, rel=1e-12)
