@@ -33,7 +33,7 @@ from bench_quality import LITERATURE, oidn  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.backend import choose_variant  # noqa: E402
-from ppmrecon.metrics import relmse, relmse_trimmed  # noqa: E402
+from ppmrecon.metrics import relmse, relmse_map, relmse_trimmed  # noqa: E402
 
 METHODS = ("sppm", "cppm", "fppm")
 BUILTIN = ("cornell_caustics", "water_caustic")
@@ -72,6 +72,28 @@ def single_as_buffer(res) -> B.BufferFile:
     var = np.repeat(res.variances[:1], 5, 0)
     rad = np.repeat(res.radii[:1], 5, 0)
     return B.BufferFile(est, var, rad, res.albedo, res.normal, res.depth, dict(res.header))
+
+
+def comparison_figure(images: list[np.ndarray], ref: np.ndarray, zoom: int = 3) -> np.ndarray:
+    """Full images and the reference in a row; below, the same crop of each (a third of the
+    image, where SPPM's error is largest) magnified ``zoom`` times (paper 002 Fig. 7 style)."""
+    from scipy.ndimage import uniform_filter
+
+    from ppmrecon.preview import side_by_side
+
+    h, w = ref.shape[:2]
+    ch, cw = max(h // 3, 8), max(w // 3, 8)
+    err = uniform_filter(relmse_map(images[0], ref), size=(ch, cw), mode="constant")
+    cy, cx = np.unravel_index(np.argmax(err), err.shape)
+    y0, x0 = int(np.clip(cy - ch // 2, 0, h - ch)), int(np.clip(cx - cw // 2, 0, w - cw))
+    all_images = [*images, ref]
+    exposure = max(1.0, 0.18 / max(float(ref.mean()), 1e-6))     # brightens dark scenes (the spotlight)
+    top = side_by_side(all_images, exposure=exposure)
+    crops = [np.repeat(np.repeat(im[y0:y0 + ch, x0:x0 + cw], zoom, 0), zoom, 1) for im in all_images]
+    bottom = side_by_side(crops, gap=4 + max(w - cw * zoom, 0), exposure=exposure)
+    width = max(top.shape[1], bottom.shape[1])
+    pad = lambda a: np.pad(a, ((0, 0), (0, width - a.shape[1]), (0, 0)), constant_values=255)  # noqa: E731
+    return np.concatenate([pad(top), np.full((6, width, 3), 255, np.uint8), pad(bottom)], 0)
 
 
 def score(img: np.ndarray, ref: np.ndarray) -> dict:
@@ -154,7 +176,7 @@ def main() -> None:
     import mitsuba as mi  # noqa: F401
 
     from ppmrecon.model.checkpoint import load_checkpoint
-    from ppmrecon.preview import side_by_side, write_png
+    from ppmrecon.preview import write_png
 
     model = load_checkpoint(args.model).model
     preset_models = parse_models(args.preset_model) or {"default": args.model}
@@ -171,7 +193,8 @@ def main() -> None:
     if args.refs_only:
         return
     report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
-                    "cpus": os.cpu_count(), "model": str(args.model), "trim": TRIM, "scenes": {}}
+                    "cpus": os.cpu_count(), "model": str(args.model), "trim": TRIM, "scenes": {},
+                    "command": " ".join(["benchmarks/study.py", *sys.argv[1:]])}
     t_all = time.perf_counter()
     preset_buffers, preset_singles, ref_of = {}, {}, {}
     for key, (loaded, refs) in reference_sets.items():
@@ -199,27 +222,27 @@ def main() -> None:
 
         # equal-time comparisons
         equal = []
-        crops = []
+        images: dict[str, np.ndarray] = {}          # the largest budget's images are kept for the figure
         for budget in budgets:
             row: dict = {"budget": budget}
             for method in METHODS:
                 res = renderer(sc, key, "single", method, photons, 11, budget=budget).run()
                 row[method] = {"passes": res.passes, **score(res.estimates[0], ref)}
+                images[method] = res.estimates[0]
                 if method == "sppm":
-                    sppm_img = res.estimates[0]
                     t_oidn = timed_oidn(single_as_buffer(res), 0)[1]
                     res_o = renderer(sc, key, "single", method, photons, 12, budget=max(budget - t_oidn, 0.1)).run()
                     img_o, t_oidn = timed_oidn(single_as_buffer(res_o), 0)
                     row["oidn+sppm"] = {"passes": res_o.passes, "inference": t_oidn, **score(img_o, ref)}
+                    images["oidn+sppm"] = img_o
                 t_inf = overhead[method]["inference"]
                 res_m = renderer(sc, key, "multi", method, photons, 13, budget=max(budget - t_inf, 0.1)).run()
                 img_m, t_inf = timed_denoise(res_m.buffer_file(), model)
                 row[f"ours+{method}"] = {"passes": res_m.passes, "inference": t_inf, **score(img_m, ref)}
-                if method == "sppm" and budget == budgets[-1]:
-                    crops = [sppm_img, img_o, img_m, ref]
+                images[f"ours+{method}"] = img_m
             equal.append(row)
         entry["equal_time"] = equal
-        write_png(fig_dir / f"equal_time_{key}.png", side_by_side(crops))
+        write_png(fig_dir / f"equal_time_{key}.png", comparison_figure([images[n] for n in NAMES], ref))
 
         # consistency curves (SPPM, ours + SPPM, OIDN + SPPM)
         ns = set(doublings)
@@ -325,6 +348,7 @@ def markdown(r: dict) -> str:
              f"width {r['width']} (aspect kept), {r['photons']} photons per pass. References: single-bandwidth SPPM, "
              f"{r['reference_passes']} passes, mean of two independent renders; their *agreement* is the relMSE "
              "between the two, and the mean's own noise is about a quarter of it.", "",
+             f"Command: `{r.get('command', 'benchmarks/study.py')}`", "",
              "relMSE as SPEC section 7 (eps 0.01); *trimmed* leaves out the "
              f"{trim} of pixels with the largest error, so that a few fireflies do not decide the figure.", "",
              "## Where we win and where we lose", "",
@@ -344,8 +368,9 @@ def markdown(r: dict) -> str:
             cells = [(f"**{row[n]['relmse']:.3g}**" if row[n]["relmse"] == best else f"{row[n]['relmse']:.3g}")
                      + f" ({row[n]['passes']})" for n in names]
             lines.append(f"| {row['budget']:.0f}s | " + " | ".join(cells) + " |")
-        lines += ["", f"![{key}](figures/equal_time_{key}.png)  ", "SPPM | OIDN + SPPM | ours + SPPM | reference "
-                  "(largest budget)", ""]
+        lines += ["", f"![{key}](figures/equal_time_{key}.png)  ",
+                  " | ".join(NAMES) + " | reference, at the largest budget; below: the crop where SPPM's error "
+                  "is largest, magnified.", ""]
     lines += ["![equal time](figures/equal_time.png)", "",
               f"### Trimmed relMSE ({trim} worst pixels left out), largest budget", "",
               "| scene | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
