@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import sys
 import time
 from pathlib import Path
@@ -100,6 +101,22 @@ def score(img: np.ndarray, ref: np.ndarray) -> dict:
     return {"relmse": relmse(img, ref), "relmse_trim": relmse_trimmed(img, ref, TRIM)}
 
 
+REF_SEEDS = (1001, 1002)
+
+
+def ref_path(cache: Path, key: str, width: int, passes: int, photons: int, seed: int) -> Path:
+    return cache / f"{key}_{width}_{passes}x{photons}_s{seed}.exr"
+
+
+def agreement(refs: list[np.ndarray]) -> dict:
+    """relMSE between the two references, both ways round (a firefly in one of them makes
+    it asymmetric), and the symmetric trimmed figure, which fireflies do not decide."""
+    return {"reference_agreement_relmse": relmse(refs[0], refs[1]),
+            "reference_agreement_relmse_reverse": relmse(refs[1], refs[0]),
+            "reference_agreement_relmse_trim": 0.5 * (relmse_trimmed(refs[0], refs[1], TRIM)
+                                                      + relmse_trimmed(refs[1], refs[0], TRIM))}
+
+
 def references(scenes: dict, width: int, photons: int, passes: int, cache: Path) -> dict:
     """Two independent single-bandwidth SPPM references per scene (cached as EXR)."""
     from ppmrecon.render.scene import load_scene
@@ -108,8 +125,8 @@ def references(scenes: dict, width: int, photons: int, passes: int, cache: Path)
     for key, spec in scenes.items():
         loaded = load_scene(spec, resolution=width)
         refs = []
-        for seed in (1001, 1002):
-            path = cache / f"{key}_{width}_{passes}x{photons}_s{seed}.exr"
+        for seed in REF_SEEDS:
+            path = ref_path(cache, key, width, passes, photons, seed)
             if not path.exists():
                 t = time.perf_counter()
                 res = renderer(loaded.scene, key, "single", "sppm", photons, seed, passes=passes).run()
@@ -165,8 +182,13 @@ def main() -> None:
                     help="a trained checkpoint for the preset trade (repeat; default: only --model)")
     ap.add_argument("--quick", action="store_true", help="small sizes and budgets (< 15 min on 2 cores)")
     ap.add_argument("--refs-only", action="store_true", help="render (and cache) the references, then stop")
+    ap.add_argument("--report-only", action="store_true",
+                    help="rewrite RESULTS.md and the plots from the last run's results.json (no rendering)")
     ap.add_argument("--out", type=Path, default=ROOT / "docs")
     args = ap.parse_args()
+    if args.report_only:
+        report_only(args.out)
+        return
     q = args.quick
     fig_dir = args.out / "figures"
     cache = args.out / "cache"
@@ -193,15 +215,14 @@ def main() -> None:
     if args.refs_only:
         return
     report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
-                    "cpus": os.cpu_count(), "model": str(args.model), "trim": TRIM, "scenes": {},
+                    "cpus": os.cpu_count(), "cpu": cpu_name(), "model": str(args.model), "trim": TRIM, "scenes": {},
                     "command": " ".join(["benchmarks/study.py", *sys.argv[1:]])}
     t_all = time.perf_counter()
     preset_buffers, preset_singles, ref_of = {}, {}, {}
     for key, (loaded, refs) in reference_sets.items():
         sc = loaded.scene
         ref = ref_of[key] = 0.5 * (refs[0] + refs[1])
-        entry: dict = {"resolution": f"{loaded.width}x{loaded.height}",
-                       "reference_agreement_relmse": relmse(refs[0], refs[1])}
+        entry: dict = {"resolution": f"{loaded.width}x{loaded.height}", **agreement(refs)}
 
         # warm-up: compile every configuration once, measure per-pass costs
         overhead = {}
@@ -276,6 +297,35 @@ def main() -> None:
     plots(report, fig_dir)
     (args.out / "RESULTS.md").write_text(markdown(report))
     print(markdown(report))
+
+
+def cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+def report_only(out: Path) -> None:
+    """Rewrite the Markdown and plots from ``results.json``; reference agreements missing
+    from an older file are computed from the cached references when they are there."""
+    from ppmrecon import buffers as B
+
+    path = out / "results.json"
+    if not path.is_file():
+        sys.exit(f"study.py: {path}: no results to report (run the study first)")
+    report = json.loads(path.read_text())
+    for key, e in report["scenes"].items():
+        paths = [ref_path(out / "cache", key, report["width"], report["reference_passes"], report["photons"], s)
+                 for s in REF_SEEDS]
+        if "reference_agreement_relmse_trim" not in e and all(p.is_file() for p in paths):
+            e.update(agreement([B.read_rgb(p)[0] for p in paths]))
+    path.write_text(json.dumps(report, indent=1))
+    plots(report, out / "figures")
+    (out / "RESULTS.md").write_text(markdown(report))
 
 
 def plots(report: dict, fig_dir: Path) -> None:
@@ -370,11 +420,14 @@ def markdown(r: dict) -> str:
     trim = f"{100 * r['trim']:g}%"
     rows, tally = summary_rows(r)
     lines = ["# Results: speed and accuracy", "",
-             f"Generated by `benchmarks/study.py{' --quick' if r['quick'] else ''}` on {r['cpus']} CPU cores in "
+             f"Generated by `benchmarks/study.py{' --quick' if r['quick'] else ''}` on {r['cpus']} CPU cores"
+             f"{' (' + r['cpu'] + ')' if r.get('cpu') else ''} in "
              f"{r['seconds'] / 60:.1f} min (references not counted); model `{Path(r['model']).name}`. Scenes at "
              f"width {r['width']} (aspect kept), {r['photons']} photons per pass. References: single-bandwidth SPPM, "
              f"{r['reference_passes']} passes, mean of two independent renders; their *agreement* is the relMSE "
-             "between the two, and the mean's own noise is about a quarter of it.", "",
+             "between the two (trimmed, both ways round: a firefly in one reference otherwise decides it), and "
+             "the mean's own noise is about a quarter of it. Every entry's relMSE includes that noise, so where "
+             "it is close to the entries' figures the ratios between entries are compressed towards 1.", "",
              f"Command: `{r.get('command', 'benchmarks/study.py')}`", "",
              "relMSE as SPEC section 7 (eps 0.01); *trimmed* leaves out the "
              f"{trim} of pixels with the largest error, so that a few fireflies do not decide the figure.", "",
@@ -386,9 +439,10 @@ def markdown(r: dict) -> str:
              "|---|---|---|---|---|---|---|", *rows, "", tally, "",
              "## Equal-time comparison (relMSE, passes reached)", ""]
     for key, e in r["scenes"].items():
-        agree = e["reference_agreement_relmse"]
-        lines += [f"### {key} ({e['resolution']}; reference agreement relMSE {agree:.2e}, "
-                  f"so the reference's noise is ~{agree / 4:.1e})", "",
+        agree = e.get("reference_agreement_relmse_trim", e["reference_agreement_relmse"])
+        plain = e["reference_agreement_relmse"], e.get("reference_agreement_relmse_reverse", e["reference_agreement_relmse"])
+        lines += [f"### {key} ({e['resolution']}; reference agreement relMSE {agree:.2e} trimmed, "
+                  f"{plain[0]:.2e} / {plain[1]:.2e} plain both ways; the reference's noise is ~{agree / 4:.1e})", "",
                   "| budget | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
         for row in e["equal_time"]:
             best = min(row[n]["relmse"] for n in names)
