@@ -19,7 +19,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -30,6 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from bench_denoise import _cpu_name  # noqa: E402
 from bench_quality import LITERATURE, oidn  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
@@ -215,7 +215,7 @@ def main() -> None:
     if args.refs_only:
         return
     report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
-                    "cpus": os.cpu_count(), "cpu": cpu_name(), "model": str(args.model), "trim": TRIM, "scenes": {},
+                    "cpus": os.cpu_count(), "cpu": _cpu_name(), "model": str(args.model), "trim": TRIM, "scenes": {},
                     "command": " ".join(["benchmarks/study.py", *sys.argv[1:]])}
     t_all = time.perf_counter()
     preset_buffers, preset_singles, ref_of = {}, {}, {}
@@ -297,16 +297,6 @@ def main() -> None:
     plots(report, fig_dir)
     (args.out / "RESULTS.md").write_text(markdown(report))
     print(markdown(report))
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def report_only(out: Path) -> None:
