@@ -301,8 +301,6 @@ def test_render_writes_valid_buffer_file(tmp_path, method):
     assert (buf.radii <= r1 * (1 + 1e-6)).all()
 
 
-@pytest.mark.xfail(strict=False, reason="on the 2-core AMD EPYC machine of 2026-11-22 a kernel of the third pass "
-                   "misses Dr.Jit's cache inside pytest (not in a plain script); under investigation")
 @pytest.mark.parametrize("method", ["cppm", "fppm"])
 def test_kernels_compiled_once(method):
     """From the third pass on every kernel (gather with statistics, the controller's

@@ -19,6 +19,12 @@ import mitsuba as mi
 import numpy as np
 
 
+def opaque_count(n: int) -> mi.Float:
+    """A pass count as an opaque JIT value: a Python number would be baked into the
+    kernel as a literal and recompile it on every pass."""
+    return dr.opaque(mi.Float, float(n))
+
+
 @dataclass
 class RunningMean:
     """Welford accumulator of Color3f per pixel."""
@@ -34,14 +40,14 @@ class RunningMean:
     def add(self, value: mi.Color3f) -> None:
         self.n += 1
         delta = value - self.mean
-        self.mean = self.mean + delta / self.n
+        self.mean = self.mean + delta / opaque_count(self.n)
         self.m2 = self.m2 + delta * (value - self.mean)
         dr.eval(self.mean, self.m2)
 
     def variance_of_mean(self) -> mi.Float:
         if self.n < 2:
             return dr.zeros(mi.Float, dr.width(self.mean))
-        var = self.m2 / ((self.n - 1) * self.n)
+        var = self.m2 / opaque_count((self.n - 1) * self.n)
         return (var.x + var.y + var.z) / 3.0
 
     def numpy(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -60,5 +66,5 @@ class PlainMean:
 
     def add(self, value) -> None:
         self.n += 1
-        self.mean = self.mean + (value - self.mean) / self.n
+        self.mean = self.mean + (value - self.mean) / opaque_count(self.n)
         dr.eval(self.mean)

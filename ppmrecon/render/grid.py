@@ -31,7 +31,8 @@ def cell_hash(c: mi.Vector3i, mask: int) -> mi.UInt32:
     """Bucket of integer cell ``c`` in a table of ``mask + 1`` (a power of two) slots."""
     ux, uy, uz = (dr.reinterpret_array(mi.UInt32, c.x), dr.reinterpret_array(mi.UInt32, c.y),
                   dr.reinterpret_array(mi.UInt32, c.z))
-    return ((ux * _P1) ^ (uy * _P2) ^ (uz * _P3)) & mask
+    # opaque: the table grows with the photon count, and a literal mask would recompile the gather
+    return ((ux * _P1) ^ (uy * _P2) ^ (uz * _P3)) & dr.opaque(mi.UInt32, mask)
 
 
 @dataclass
