@@ -34,6 +34,7 @@ from bench_quality import LITERATURE, oidn  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.backend import choose_variant  # noqa: E402
+from ppmrecon.fileio import atomic_write, write_json  # noqa: E402
 from ppmrecon.metrics import relmse, relmse_map, relmse_trimmed  # noqa: E402
 
 METHODS = ("sppm", "cppm", "fppm")
@@ -293,9 +294,7 @@ def main() -> None:
     report["preset_passes"] = preset_passes
     report["presets"] = preset_trade(preset_models, preset_buffers, preset_singles, ref_of)
     report["seconds"] = time.perf_counter() - t_all
-    (args.out / "results.json").write_text(json.dumps(report, indent=1))
-    plots(report, fig_dir)
-    (args.out / "RESULTS.md").write_text(markdown(report))
+    write_report(report, args.out)
     print(markdown(report))
 
 
@@ -313,9 +312,15 @@ def report_only(out: Path) -> None:
                  for s in REF_SEEDS]
         if "reference_agreement_relmse_trim" not in e and all(p.is_file() for p in paths):
             e.update(agreement([B.read_rgb(p)[0] for p in paths]))
-    path.write_text(json.dumps(report, indent=1))
+    write_report(report, out)
+
+
+def write_report(report: dict, out: Path) -> None:
+    """results.json, the plots and RESULTS.md, each written atomically."""
+    write_json(out / "results.json", report)
     plots(report, out / "figures")
-    (out / "RESULTS.md").write_text(markdown(report))
+    text = markdown(report)
+    atomic_write(out / "RESULTS.md", lambda tmp: Path(tmp).write_text(text))
 
 
 def plots(report: dict, fig_dir: Path) -> None:
@@ -364,6 +369,11 @@ def plots(report: dict, fig_dir: Path) -> None:
     fig.savefig(fig_dir / "presets.png", dpi=110)
 
 
+def best(row: dict, ours: bool, metric: str) -> str:
+    """The entry of ``row`` with the lowest ``metric`` among ours (or among the others)."""
+    return min((n for n in NAMES if n.startswith("ours") == ours), key=lambda n: row[n][metric])
+
+
 def verdict(ratio: float) -> str:
     return "tie" if abs(ratio - 1) < TIE else ("win" if ratio < 1 else "loss")
 
@@ -374,11 +384,9 @@ def summary_rows(r: dict) -> tuple[list[str], str]:
     lines, counts = [], {"plain": [], "trimmed": []}
     for key, e in r["scenes"].items():
         for row in e["equal_time"]:
-            ours = min((n for n in NAMES if n.startswith("ours")), key=lambda n: row[n]["relmse"])
-            other = min((n for n in NAMES if not n.startswith("ours")), key=lambda n: row[n]["relmse"])
+            ours, other = best(row, True, "relmse"), best(row, False, "relmse")
             ratio = row[ours]["relmse"] / row[other]["relmse"]
-            ours_t = min((n for n in NAMES if n.startswith("ours")), key=lambda n: row[n]["relmse_trim"])
-            other_t = min((n for n in NAMES if not n.startswith("ours")), key=lambda n: row[n]["relmse_trim"])
+            ours_t, other_t = best(row, True, "relmse_trim"), best(row, False, "relmse_trim")
             ratio_t = row[ours_t]["relmse_trim"] / row[other_t]["relmse_trim"]
             counts["plain"].append(verdict(ratio))
             counts["trimmed"].append(verdict(ratio_t))
