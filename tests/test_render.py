@@ -22,7 +22,7 @@ from ppmrecon.render.scene import load_scene  # noqa: E402
 
 def render(name, res, **kw):
     loaded = load_scene(name, resolution=res)
-    kw.setdefault("max_depth", loaded.max_depth or 8)
+    kw.setdefault("max_depth", loaded.depths()[0])
     return loaded, Renderer(loaded.scene, RenderSettings(**kw), scene_name=name)
 
 
@@ -128,3 +128,97 @@ def test_time_budget_stops():
     _, r = render("cornell_caustics", (16, 16), passes=None, time_budget=1.0, photons=1 << 12)
     res = r.run()
     assert res.passes >= 1 and res.stopped == "time budget"
+
+
+def _furnace_sphere(res: int = 16) -> "mi.Scene":
+    """Inside a closed sphere (radius 1) whose wall emits L_e = 1 and reflects diffusely
+    with albedo rho = 0.8: the radiance is L_e sum_k rho^k over the bounces a path may
+    take, 1 / (1 - rho) = 5 unbounded. The constant kernel is exact on a sphere (the
+    cap within chord r has area pi r^2), so the estimate is unbiased up to the radius."""
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 60.0,
+                   "to_world": mi.ScalarTransform4f().look_at(origin=[0, 0, 0], target=[0, 0, 1], up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": res, "height": res, "rfilter": {"type": "box"}}},
+        "wall": {"type": "sphere", "radius": 1.0, "flip_normals": True,
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": 0.8}},
+                 "emitter": {"type": "area", "radiance": {"type": "rgb", "value": 1.0}}},
+    })
+
+
+@pytest.mark.parametrize("max_depth, expected", [(-1, 5.0), (3, 1.0 + 0.8 + 0.64)])
+def test_path_depth_follows_mitsuba_closed_form(max_depth, expected):
+    """White furnace: max_depth counts segments of the whole camera-to-light path as in
+    Mitsuba (1: emitters seen directly, 3: up to two bounces), -1 is unbounded with
+    Russian roulette. Every chain's image mean lies within 2% of the closed form
+    (16x16, 2^15 photons x 16 passes); depth 8 would give 4.16 instead of 5."""
+    res = Renderer(_furnace_sphere(), RenderSettings(passes=16, photons=1 << 15, seed=2,
+                                                     max_depth=max_depth)).run()
+    assert res.header["ppmrecon.max_depth"] == max_depth
+    for k in range(5):
+        assert res.estimates[k].mean() == pytest.approx(expected, rel=0.02), (k, res.estimates[k].mean())
+    assert res.nonfinite == 0
+
+
+def test_scene_depth_and_cli_override(tmp_path):
+    """A scene's max_depth -1 or 65 is kept as it is (no silent cap), --max-depth wins."""
+    from ppmrecon.render.cli import main
+
+    scene = tmp_path / "s.xml"
+    scene.write_text(
+        '<scene version="3.0.0"><integrator type="path"><integer name="max_depth" value="65"/>'
+        '<integer name="rr_depth" value="7"/></integrator>'
+        '<sensor type="perspective"><transform name="to_world"><lookat origin="0,0,4" target="0,0,0" up="0,1,0"/>'
+        '</transform><film type="hdrfilm"><integer name="width" value="8"/><integer name="height" value="8"/></film>'
+        '</sensor><shape type="rectangle"><bsdf type="diffuse"/></shape>'
+        '<emitter type="point"><point name="position" x="0" y="0" z="1"/></emitter></scene>')
+    for extra, depth, rr in (([], 65, 7), (["--max-depth", "-1", "--rr-depth", "3"], -1, 3)):
+        out = tmp_path / f"o{depth}.exr"
+        assert main([str(scene), "--passes", "1", "--photons", "256", "-q", "-o", str(out)] + extra) == 0
+        header = B.read_buffers(out).header
+        assert header["ppmrecon.max_depth"] == depth and header["ppmrecon.rr_depth"] == rr
+
+
+def test_nonfinite_photon_contribution_is_dropped_alone():
+    """A photon whose power is NaN or Inf is left out of the gather (and counted); the
+    other photons and the emission keep their value: the estimate equals the one of a
+    photon map without those photons."""
+    import drjit as dr
+
+    from ppmrecon.render.eye import trace_eye
+    from ppmrecon.render.gather import gather
+    from ppmrecon.render.grid import build_grid
+    from ppmrecon.render.photons import trace_photons
+
+    loaded = load_scene("plane_point", resolution=(16, 16))
+    pm = trace_photons(loaded.scene, 1 << 12, seed=4, max_depth=2)
+    gp = trace_eye(loaded.scene, loaded.scene.sensors()[0], seed=5, max_depth=2)
+    power = np.asarray(pm.power).copy()           # (3, n)
+    bad = np.zeros(power.shape[1], bool)
+    bad[::7] = True
+    clean = power.copy()
+    clean[:, bad] = 0.0
+    power[0, bad[: power.shape[1]]] = np.nan
+    power[1, np.flatnonzero(bad)[::2]] = np.inf
+    radius = [dr.full(mi.Float, 0.3, 16 * 16)]
+    results = {}
+    for name, values in (("poisoned", power), ("clean", clean)):
+        pm.power = mi.Color3f(values)
+        results[name] = gather(gp, radius, build_grid(pm, 0.3), max_depth=2)
+    flux = np.asarray(results["poisoned"].flux[0])
+    assert np.isfinite(flux).all()
+    np.testing.assert_allclose(flux, np.asarray(results["clean"].flux[0]), rtol=1e-5, atol=1e-7)
+    assert results["poisoned"].nonfinite > 0 and results["clean"].nonfinite == 0
+
+
+def test_single_baseline_radius_is_its_own_knn():
+    """--single starts at the distance to the k-th nearest photon (default k = 10); a
+    larger k gives a larger radius, and the header says which k."""
+    radii = {}
+    for k in (3, 10):
+        _, r = render("cornell_caustics", (16, 16), passes=1, photons=1 << 12, seed=0, layout="single",
+                      single_knn=k)
+        res = r.run()
+        radii[k] = res.radii[0]
+        assert res.header["ppmrecon.single_knn"] == k
+    assert (radii[10] >= radii[3]).all() and (radii[10] > radii[3]).mean() > 0.9

@@ -23,7 +23,16 @@ from .kernels import KERNELS
 
 PROG = "ppmrecon-render"
 DEFAULT_PASSES = 16
-DEFAULT_MAX_DEPTH = 8
+
+
+def _max_depth(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+    if value == 0 or value < -1:
+        raise argparse.ArgumentTypeError(f"must be a positive number of segments or -1 (unbounded), got {value}")
+    return value
 
 
 def _resolution(text: str) -> tuple[int, int] | int:
@@ -61,8 +70,12 @@ def build_parser() -> ArgumentParser:
                    help="film size; a single width keeps the scene's aspect ratio")
     p.add_argument("--seed", type=int, default=0, help="random seed (same seed, same file)")
     p.add_argument("--kernel", default="constant", choices=KERNELS, help="density kernel (default: constant)")
-    p.add_argument("--max-depth", type=positive_int, default=None, metavar="D",
-                   help=f"maximum path depth for photons and eye paths (default: the scene's, else {DEFAULT_MAX_DEPTH})")
+    p.add_argument("--max-depth", type=_max_depth, default=None, metavar="D",
+                   help="longest path in segments, camera to light, as Mitsuba's max_depth; -1 = unbounded "
+                        "(default: the scene integrator's max_depth, else -1)")
+    p.add_argument("--rr-depth", type=positive_int, default=None, metavar="D",
+                   help="bounces before Russian roulette on photon and eye paths "
+                        "(default: the scene integrator's rr_depth, else 5)")
     p.add_argument("--alpha", type=float, default=2.0 / 3.0,
                    help="radius reduction alpha of SPPM and of FPPM's lower bound (default: 2/3)")
     p.add_argument("--knn", type=positive_int, default=20,
@@ -79,8 +92,11 @@ def build_parser() -> ArgumentParser:
     tests.add_argument("--per-channel", action="store_true",
                        help="fppm: F-test R, G and B separately (chromatic or textured lights) instead of luminance")
     p.add_argument("--single", action="store_true",
-                   help="render the conventional single-bandwidth image (second-smallest initial "
-                        "bandwidth, one eye path) into a plain R,G,B EXR")
+                   help="render the conventional single-bandwidth image (one chain, one eye path) "
+                        "into a plain R,G,B EXR")
+    p.add_argument("--single-knn", type=positive_int, default=None, metavar="K",
+                   help="--single: initial radius = distance to the K-th nearest photon (default: 10, "
+                        "the r_20/sqrt(2) radius paper 002 calls 'roughly k = 10')")
     p.add_argument("--shared-hit-point", action="store_true",
                    help="diagnostic: gather all five chains at one hit point (no decorrelation)")
     p.add_argument("--output", "-o", type=Path, default=None, metavar="FILE.exr",
@@ -141,6 +157,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     params = method_params(args)
     if args.single and args.shared_hit_point:
         raise UsageError("--single and --shared-hit-point exclude each other")
+    if args.single_knn is not None and not args.single:
+        raise UsageError("--single-knn applies to --single renders only")
     if args.output is not None:
         if args.output.suffix.lower() != ".exr":
             raise UsageError(f"--output {args.output}: the output must be an .exr file")
@@ -152,12 +170,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .scene import load_scene
 
     loaded = load_scene(args.scene, resolution=args.resolution)
-    max_depth = args.max_depth or (loaded.max_depth if loaded.max_depth and 0 < loaded.max_depth <= 64 else DEFAULT_MAX_DEPTH)
+    scene_max_depth, scene_rr_depth = loaded.depths()
+    max_depth = args.max_depth if args.max_depth is not None else scene_max_depth
+    rr_depth = args.rr_depth or scene_rr_depth
     layout = "single" if args.single else ("shared" if args.shared_hit_point else "multi")
     settings = RenderSettings(
         method=args.method, passes=args.passes if args.passes else (None if args.time else DEFAULT_PASSES),
         time_budget=args.time, photons=args.photons, seed=args.seed, kernel=args.kernel,
-        max_depth=max_depth, alpha=args.alpha, knn=args.knn, layout=layout, method_params=params)
+        max_depth=max_depth, rr_depth=rr_depth, alpha=args.alpha, knn=args.knn,
+        single_knn=args.single_knn or RenderSettings.single_knn, layout=layout, method_params=params)
     output = args.output or _default_output(loaded.name, args.method, args.single)
 
     renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)
@@ -173,8 +194,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     progress.close()
     result.header["ppmrecon.variant"] = variant
     if result.nonfinite:
-        sys.stderr.write(f"{PROG}: warning: {result.nonfinite} non-finite per-pass pixel estimates were "
-                         f"set to zero (recorded as ppmrecon.nonfinite_samples)\n")
+        where = ", ".join(f"{result.header[f'ppmrecon.nonfinite.{k}']} {k}" for k in renderer.nonfinite)
+        sys.stderr.write(f"{PROG}: warning: dropped {result.nonfinite} non-finite terms ({where}; "
+                         f"recorded as ppmrecon.nonfinite.*)\n")
     if args.single:
         B.write_rgb(output, result.estimates[0], header=result.header)
     else:

@@ -7,8 +7,13 @@ interactions (mirror, glass) by BSDF sampling in radiance mode, accumulating
     L_e += beta * L_emitted            (emitters seen directly or through specular chains)
 
 until the first surface whose BSDF has a diffuse or glossy component: that surface is
-the gather point, carrying the throughput beta to the camera. Paths that escape (the
-environment, if any, is added to L_e) or exceed ``max_depth`` keep only L_e.
+the gather point, carrying the throughput beta to the camera and its segment count e
+(the gather keeps photons of d + 1 light segments only while e + d + 1 <= max_depth,
+Mitsuba's convention). Paths that escape (the environment, if any, is added to L_e) or
+exceed ``max_depth`` segments keep only L_e; with ``max_depth`` = -1 (unbounded) a delta
+chain ends by Russian roulette after ``rr_depth`` segments, as in Mitsuba's ``path``.
+A non-finite throughput or emitted term (a degenerate BSDF sample) is dropped alone and
+counted.
 """
 
 from __future__ import annotations
@@ -33,27 +38,35 @@ class GatherPoints:
     normal: mi.Normal3f            # world-space shading normal at the gather point
     depth: mi.Float                # distance along the eye path to the gather point
     n_oriented: mi.Normal3f        # geometric normal facing the eye
+    segments: mi.UInt32            # eye-path segments to the gather point (e)
+    nonfinite: int = 0             # non-finite terms dropped on the way
 
     def __len__(self) -> int:
         return dr.width(self.found)
 
 
 @dr.syntax
-def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: int):
-    """Follow delta bounces; returns the last ray, throughput, L_e, path length, found."""
+def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int):
+    """Follow delta bounces; returns the last ray, throughput, L_e, path length, segments,
+    found, and which lanes dropped a non-finite term."""
     beta = mi.Color3f(1.0)
     emitted = mi.Color3f(0.0)
     length = mi.Float(0.0)
     depth = mi.UInt32(0)
     found = mi.Bool(False)
+    bad = mi.Bool(False)
     active = mi.Bool(True)
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
 
     while active:
         si = scene.ray_intersect(ray, active)
+        depth += 1
         # The environment (invalid si) or an area light: what the eye sees directly.
         emitter = si.emitter(scene, active)
-        emitted += dr.select(active, beta * emitter.eval(si, active), 0.0)
+        le = beta * emitter.eval(si, active)
+        le_ok = dr.all(dr.isfinite(le))
+        bad |= active & ~le_ok
+        emitted += dr.select(active & le_ok, le, 0.0)
 
         hit = active & si.is_valid()
         bsdf = si.bsdf(ray)
@@ -61,20 +74,28 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: int):
         stop_here = hit & smooth
         found |= stop_here
         length += dr.select(hit, si.t, 0.0)
-        active = hit & ~smooth
+        active = hit & ~smooth & (depth < max_depth)
 
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
                                       mi.Point2f(rng.next_float32(), rng.next_float32()), active)
         beta[active] *= bsdf_weight
         ray[active] = si.spawn_ray(si.to_world(bs.wo))
-        depth += 1
-        active &= (depth < max_depth) & dr.any(beta > 0.0)
+        # Roulette on delta chains (only unbounded depth needs it to end mirror halls).
+        q = dr.minimum(dr.max(beta), 0.95)
+        roulette = active & (depth >= rr_depth)
+        survive = rng.next_float32() < q
+        beta[roulette] = beta / dr.maximum(q, 1e-8)
+        finite = dr.all(dr.isfinite(beta))
+        bad |= active & ~finite
+        active &= (~roulette | survive) & dr.any(beta > 0.0) & finite
 
-    return ray, beta, emitted, length, found
+    return ray, beta, emitted, length, depth, found, bad
 
 
-def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int) -> GatherPoints:
-    """One eye path per pixel (row-major, top row first) with random stream ``seed``."""
+def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
+              rr_depth: int = 5) -> GatherPoints:
+    """One eye path per pixel (row-major, top row first) with random stream ``seed``;
+    ``max_depth`` in segments, -1 for unbounded."""
     film_size = sensor.film().crop_size()
     width, height = int(film_size[0]), int(film_size[1])
     n = width * height
@@ -87,7 +108,8 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int) -> 
                                         sample3=mi.Point2f(rng.next_float32(), rng.next_float32()))
     ray = mi.Ray3f(ray)
 
-    last_ray, beta, emitted, length, found = _walk(scene, ray, rng, max_depth)
+    depth_cap = mi.UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
+    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth)
     beta *= ray_weight
     emitted *= ray_weight
 
@@ -97,6 +119,9 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int) -> 
     normal = dr.select(found, si.sh_frame.n, 0.0)
     n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
     gp = GatherPoints(si=si, found=found, beta=beta, emitted=emitted, albedo=albedo,
-                      normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented)
-    dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented)
+                      normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
+                      segments=segments)
+    dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
+            gp.segments, bad)
+    gp.nonfinite = int(dr.count(bad)[0]) if n else 0
     return gp

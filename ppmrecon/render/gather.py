@@ -10,12 +10,18 @@ is accumulated for every chain s with |x_p - x| < r_s; the last factor is the
 shading-normal correction of adjoint transport (Veach 1997, Sec. 5.3), which turns
 Mitsuba's cosine-weighted ``bsdf.eval`` into f / |w_p . n_g|. Photons whose oriented
 normal faces away from the gather point's are rejected (the back side of a thin wall
-must neither light nor shrink the estimate), unless the BSDF transmits. The pass
+must neither light nor shrink the estimate), unless the BSDF transmits. With a finite
+``max_depth`` (Mitsuba's convention: segments of the whole path), a photon of bounce
+index d counts only if e + d + 1 <= max_depth, e the eye path's segments. A non-finite
+contribution (a degenerate BSDF evaluation) is dropped alone and counted. The pass
 estimate is then ``L_e + beta * S_s / J`` (see :mod:`ppmrecon.render.integrator`).
 
 With ``stats`` (CPPM, FPPM), the same visit also files every photon inside a chain's
 radius into that chain's per-pixel cell statistics (2 equal-area annuli x 6 sectors of
-the gather point's shading tangent frame, see :mod:`ppmrecon.render.hypothesis`): a
+a tangent frame that depends on the shading normal alone, ``mi.coordinate_system(n)``,
+so that successive gather points of a pixel on the same or a gently curved surface pool
+their photons into the same sectors whatever the mesh's UV parameterisation; see
+:mod:`ppmrecon.render.hypothesis`): a
 count per cell, or the sum and sum of squares of its contribution f * Phi (without the
 kernel weight: a sample of the integral of Psi* over the cell, paper 000 Eq. 5-6). The
 photon's sector is computed once and shared by the chains; its annulus depends on each
@@ -48,17 +54,20 @@ FACING_COS = 1e-3
 
 @dataclass
 class GatherResult:
-    """Per chain slot s: kernel-weighted sum S_s (RGB) and the photon count M_s."""
+    """Per chain slot s: kernel-weighted sum S_s (RGB) and the photon count M_s; and
+    how many non-finite photon contributions were dropped."""
 
     flux: list[mi.Color3f]
     count: list[mi.UInt32]
+    nonfinite: int = 0
 
 
 def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant",
-           stats: list["CellStatistics"] | None = None) -> GatherResult:
+           stats: list["CellStatistics"] | None = None, max_depth: int = -1) -> GatherResult:
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
     0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
-    slot) also accumulate the per-cell statistics of the photons inside each radius."""
+    slot) also accumulate the per-cell statistics of the photons inside each radius.
+    ``max_depth``: segments of the whole path (-1: unbounded)."""
     if stats is not None and len(stats) != len(radii):
         raise ValueError("gather: one statistics target per chain slot")
     n_slots = len(radii)
@@ -83,8 +92,14 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     n_gp = gp.n_oriented
     mask = grid.table_mask
     lane = dr.arange(mi.UInt32, dr.width(gp.found))
+    # Largest photon bounce index that keeps the path within max_depth segments.
+    bounded = max_depth >= 0
+    if bounded:
+        last_bounce = dr.opaque(mi.Int32, max_depth - 1) - mi.Int32(gp.segments)
+    if stats is not None:
+        frame_s, frame_t = mi.coordinate_system(si.sh_frame.n)
 
-    def photon_body(k, end, cell, flux, count):
+    def photon_body(k, end, cell, flux, count, dropped):
         xp = dr.gather(mi.Point3f, grid.p, k)
         # Buckets can hold other cells (hash collisions): count a photon only from its own cell.
         same_cell = dr.all(cell_of(xp, inv_cell) == cell)
@@ -95,15 +110,20 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         w_p = -dr.gather(mi.Vector3f, grid.d, k, ok)
         cos_g = dr.abs(dr.dot(w_p, si.n))
         ok &= cos_g > 1e-4
+        if bounded:
+            ok &= mi.Int32(dr.gather(mi.UInt32, grid.depth, k, ok)) <= last_bounce
         f_cos = bsdf.eval(ctx, si, si.to_local(w_p), ok)
         contrib = f_cos / cos_g * dr.gather(mi.Color3f, grid.power, k, ok)
+        finite = dr.all(dr.isfinite(contrib))
+        dropped = dr.select(ok & ~finite, dropped + 1, dropped)
+        ok &= finite
         flux = list(flux)
         count = list(count)
         if stats is not None:
-            # Tangent-plane offset in the shading frame (paper 000 Eq. 2); the sector is
-            # the same for every chain, only the annulus depends on r_s.
+            # Tangent-plane offset (paper 000 Eq. 2); the sector is the same for every
+            # chain, only the annulus depends on r_s.
             offset = xp - si.p
-            sector = sector_index(dr.dot(offset, si.sh_frame.s), dr.dot(offset, si.sh_frame.t), DRJIT_OPS)
+            sector = sector_index(dr.dot(offset, frame_s), dr.dot(offset, frame_t), DRJIT_OPS)
         for s in range(n_slots):
             inside = ok & (d2 < r2[s])
             weight = kernel_weight(kernel, d2, r2[s], sqrt=dr.sqrt)
@@ -112,31 +132,32 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
             if stats is not None:
                 cell_s = mi.UInt32(cell_index(sector, d2, r2[s], DRJIT_OPS))
                 stats[s].add(lane, cell_s, contrib, inside)
-        return k + 1, end, cell, tuple(flux), tuple(count)
+        return k + 1, end, cell, tuple(flux), tuple(count), dropped
 
-    def cell_body(c, flux, count):
+    def cell_body(c, flux, count, dropped):
         cell = lo + mi.Vector3i(mi.Int32(c % ex), mi.Int32((c // ex) % ey), mi.Int32(c // (ex * ey)))
         bucket = cell_hash(cell, mask)
         k = dr.gather(mi.UInt32, grid.start, bucket)
         end = dr.gather(mi.UInt32, grid.end, bucket)
-        _, _, _, flux, count = dr.while_loop(
-            state=(k, end, cell, flux, count),
-            cond=lambda k, end, cell, flux, count: k < end,
+        _, _, _, flux, count, dropped = dr.while_loop(
+            state=(k, end, cell, flux, count, dropped),
+            cond=lambda k, end, cell, flux, count, dropped: k < end,
             body=photon_body,
-            labels=("k", "end", "cell", "flux", "count"),
+            labels=("k", "end", "cell", "flux", "count", "dropped"),
             label="ppmrecon_gather_photons")
-        return c + 1, flux, count
+        return c + 1, flux, count, dropped
 
     flux0 = tuple(dr.zeros(mi.Color3f, dr.width(gp.found)) for _ in range(n_slots))
     count0 = tuple(dr.zeros(mi.UInt32, dr.width(gp.found)) for _ in range(n_slots))
-    _, flux, count = dr.while_loop(
-        state=(mi.UInt32(0), flux0, count0),
-        cond=lambda c, flux, count: c < n_cells,
+    _, flux, count, dropped = dr.while_loop(
+        state=(mi.UInt32(0), flux0, count0, dr.zeros(mi.UInt32, dr.width(gp.found))),
+        cond=lambda c, flux, count, dropped: c < n_cells,
         body=cell_body,
-        labels=("c", "flux", "count"),
+        labels=("c", "flux", "count", "dropped"),
         label="ppmrecon_gather_cells")
     flux, count = list(flux), list(count)
-    dr.eval(flux, count)
+    dr.eval(flux, count, dropped)
     if stats is not None:  # the scatters ran in the loop kernel; make them visible
         dr.eval(*(st.data for st in stats))
-    return GatherResult(flux=flux, count=count)
+    nonfinite = int(dr.sum(dropped)[0]) if dr.width(dropped) else 0
+    return GatherResult(flux=flux, count=count, nonfinite=nonfinite)

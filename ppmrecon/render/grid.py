@@ -43,6 +43,7 @@ class PhotonGrid:
     d: mi.Vector3f
     n: mi.Normal3f
     power: mi.Color3f
+    depth: mi.UInt32
     start: mi.UInt32
     end: mi.UInt32
     cell_size: float
@@ -66,7 +67,7 @@ def build_grid(pm: PhotonMap, cell_size: float) -> PhotonGrid:
     grid = PhotonGrid(
         p=dr.gather(mi.Point3f, pm.p, order), d=dr.gather(mi.Vector3f, pm.d, order),
         n=dr.gather(mi.Normal3f, pm.n, order), power=dr.gather(mi.Color3f, pm.power, order),
-        start=mi.UInt32(start_np), end=mi.UInt32(end_np),
+        depth=dr.gather(mi.UInt32, pm.depth, order), start=mi.UInt32(start_np), end=mi.UInt32(end_np),
         cell_size=float(cell_size), table_mask=mask)
-    dr.eval(grid.p, grid.d, grid.n, grid.power, grid.start, grid.end)
+    dr.eval(grid.p, grid.d, grid.n, grid.power, grid.depth, grid.start, grid.end)
     return grid

@@ -34,7 +34,7 @@ from .eye import GatherPoints, trace_eye
 from .gather import gather
 from .grid import build_grid
 from .kernels import KERNELS
-from .photons import trace_photons
+from .photons import RR_DEPTH, trace_photons
 from .rng import EYE_A, EYE_B, EYE_SINGLE, PHOTONS, stream_seed
 
 LAYOUTS = ("multi", "single", "shared")
@@ -51,9 +51,15 @@ class RenderSettings:
     photons: int = 1 << 17
     seed: int = 0
     kernel: str = "constant"
-    max_depth: int = 8
+    #: Segments of the whole camera-to-light path, Mitsuba's convention; -1 = unbounded.
+    max_depth: int = -1
+    #: Bounces after which Russian roulette may end a path (Mitsuba's default 5).
+    rr_depth: int = RR_DEPTH
     alpha: float = 2.0 / 3.0
     knn: int = 20
+    #: k of the single-bandwidth baseline's k-NN initial radius (``layout="single"``):
+    #: k = 10 is the r_20 / sqrt(2) radius that paper 002 calls "roughly k = 10".
+    single_knn: int = 10
     layout: str = "multi"
     method_params: dict[str, Any] = field(default_factory=dict)
     #: Initial radii are clamped to [min_frac, max_frac] x the scene's bounding radius.
@@ -67,8 +73,10 @@ class RenderSettings:
             raise ValueError(f"passes must be positive, got {self.passes}")
         if self.time_budget is not None and not self.time_budget > 0:
             raise ValueError(f"time budget must be positive, got {self.time_budget}")
-        if self.photons <= 0 or self.max_depth <= 0 or self.knn <= 0:
-            raise ValueError("photons, max depth and k must be positive")
+        if self.photons <= 0 or self.knn <= 0 or self.single_knn <= 0 or self.rr_depth <= 0:
+            raise ValueError("photons, k and rr_depth must be positive")
+        if self.max_depth == 0 or self.max_depth < -1:
+            raise ValueError(f"max depth must be positive or -1 (unbounded), got {self.max_depth}")
         if self.kernel not in KERNELS:
             raise ValueError(f"unknown kernel '{self.kernel}' (choose {', '.join(KERNELS)})")
         if self.layout not in LAYOUTS:
@@ -138,7 +146,8 @@ class Renderer:
         # Render-wide alpha and k-NN k reach the controllers that take them (SPPM and
         # FPPM's alpha, CPPM's initial photon-count threshold).
         self.controller: Controller = make_controller(
-            settings.method, defaults={"alpha": settings.alpha, "knn": settings.knn},
+            settings.method,
+            defaults={"alpha": settings.alpha, "knn": settings.knn, "photons": settings.photons},
             **settings.method_params)
         self.scales = (SINGLE_SCALE,) if settings.layout == "single" else CHAIN_SCALES
         self.n_chains = len(self.scales)
@@ -147,7 +156,9 @@ class Renderer:
         self.normal = PlainMean(dr.zeros(mi.Normal3f, self.n_pixels))
         self.depth = PlainMean(dr.zeros(mi.Float, self.n_pixels))
         self.passes_done = 0
-        self.nonfinite = 0
+        #: Non-finite terms dropped, by where they arose (photon paths, eye paths, photon
+        #: contributions in the gather, whole per-pass estimates).
+        self.nonfinite = {"photons": 0, "eye": 0, "gather": 0, "estimate": 0}
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
@@ -156,9 +167,9 @@ class Renderer:
     def _eye_points(self, i: int) -> list[GatherPoints]:
         s = self.settings
         if s.layout == "multi":
-            return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_A), s.max_depth),
-                    trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_B), s.max_depth)]
-        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_SINGLE), s.max_depth)]
+            return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_A), s.max_depth, s.rr_depth),
+                    trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_B), s.max_depth, s.rr_depth)]
+        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_SINGLE), s.max_depth, s.rr_depth)]
 
     def _chains_of(self, point_index: int) -> list[int]:
         """Which chains gather at eye point ``point_index`` (A = 0, B = 1)."""
@@ -169,15 +180,18 @@ class Renderer:
     def _initial_radii(self, points: list[GatherPoints], photon_p: mi.Point3f) -> list[mi.Float]:
         s = self.settings
         r_lo, r_hi = s.radius_min_frac * self.radius_scene, s.radius_max_frac * self.radius_scene
-        r = knn_radius(points[0], photon_p, s.knn, r_lo, r_hi)
+        # The baseline's radius is its own k-NN distance; the five chains scale r_k.
+        k = s.single_knn if s.layout == "single" else s.knn
+        scales = (1.0,) if s.layout == "single" else self.scales
+        r = knn_radius(points[0], photon_p, k, r_lo, r_hi)
         for other in points[1:]:  # where A found no surface, use B's
             missing = np.isnan(r)
             if missing.any():
-                r[missing] = knn_radius(other, photon_p, s.knn, r_lo, r_hi)[missing]
+                r[missing] = knn_radius(other, photon_p, k, r_lo, r_hi)[missing]
         missing = np.isnan(r)
         fallback = float(np.median(r[~missing])) if (~missing).any() else r_hi
         r[missing] = fallback
-        return [mi.Float((r * scale).astype(np.float32)) for scale in self.scales]
+        return [mi.Float((r * scale).astype(np.float32)) for scale in scales]
 
     def run_pass(self) -> None:
         """Render pass ``passes_done + 1`` and fold it into the estimates."""
@@ -189,9 +203,11 @@ class Renderer:
             return time.perf_counter()
 
         t0 = clock()
-        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth)
+        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth, s.rr_depth)
+        self.nonfinite["photons"] += photon_map.nonfinite
         t1 = clock()
         points = self._eye_points(i)
+        self.nonfinite["eye"] += sum(p.nonfinite for p in points)
         t2 = clock()
         if i == 1:
             self.controller.start(self._initial_radii(points, photon_map.p))
@@ -202,8 +218,10 @@ class Renderer:
         results = []
         for j, p in enumerate(points):
             chains = self._chains_of(j)
-            results.append((chains, gather(p, [radii[c] for c in chains], grid, s.kernel,
-                                           self.controller.stats_targets(chains))))
+            res = gather(p, [radii[c] for c in chains], grid, s.kernel,
+                         self.controller.stats_targets(chains), max_depth=s.max_depth)
+            self.nonfinite["gather"] += res.nonfinite
+            results.append((chains, res))
         t4 = clock()
 
         inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
@@ -211,10 +229,10 @@ class Renderer:
             p = points[j]
             for slot, c in enumerate(chains):
                 estimate = p.emitted + dr.select(p.found, p.beta * res.flux[slot] * inv_j, 0.0)
-                # A NaN/Inf from a degenerate BSDF sample must not poison the running mean:
-                # zero it and count it, the count goes into the header.
+                # Non-finite terms were dropped at their source; this is the last guard
+                # (e.g. a finite sum that overflows), counted apart in the header.
                 finite = dr.all(dr.isfinite(estimate))
-                self.nonfinite += int(dr.count(~finite)[0]) if dr.width(finite) else 0
+                self.nonfinite["estimate"] += int(dr.count(~finite)[0]) if dr.width(finite) else 0
                 self.means[c].add(dr.select(finite, estimate, 0.0))
         for p in points:
             self.albedo.add(p.albedo)
@@ -278,9 +296,13 @@ class Renderer:
             B.H_VERSION: B.SCHEMA_VERSION, B.H_KERNEL: s.kernel, B.H_PASSES: self.passes_done,
             B.H_PHOTONS: s.photons, B.H_ALPHA: s.alpha, B.H_KNN: s.knn, B.H_SEED: s.seed,
             B.H_SCENE: self.scene_name, B.H_SECONDS: self.seconds, B.H_STOPPED: stopped,
-            "ppmrecon.layout": s.layout, "ppmrecon.max_depth": s.max_depth,
-            "ppmrecon.nonfinite_samples": self.nonfinite,
+            "ppmrecon.layout": s.layout, "ppmrecon.max_depth": s.max_depth, "ppmrecon.rr_depth": s.rr_depth,
+            "ppmrecon.nonfinite_samples": self.nonfinite_total,
         }
+        for k, v in self.nonfinite.items():
+            header[f"ppmrecon.nonfinite.{k}"] = v
+        if s.layout == "single":
+            header["ppmrecon.single_knn"] = s.single_knn
         header.update(self.controller.header())
         for k, v in self.stage_seconds.items():
             header[f"ppmrecon.seconds.{k}"] = v
@@ -289,4 +311,9 @@ class Renderer:
             radii=radii.astype(np.float32), albedo=np.ascontiguousarray(albedo, np.float32),
             normal=np.ascontiguousarray(normal, np.float32), depth=np.ascontiguousarray(depth, np.float32),
             passes=self.passes_done, seconds=self.seconds, stage_seconds=dict(self.stage_seconds),
-            stopped=stopped, header=header, nonfinite=self.nonfinite)
+            stopped=stopped, header=header, nonfinite=self.nonfinite_total)
+
+    @property
+    def nonfinite_total(self) -> int:
+        """Non-finite terms dropped so far, all sources."""
+        return sum(self.nonfinite.values())

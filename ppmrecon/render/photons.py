@@ -3,14 +3,28 @@ interaction with a non-delta BSDF component (SPEC section 3, step 1).
 
 A photon path starts with ``Scene.sample_emitter_ray``, whose weight is the emitted
 power over the sampling density, and continues by BSDF sampling in importance mode
-with Russian roulette after ``rr_depth`` bounces. At every surface whose BSDF has a
-diffuse or glossy component, the photon
+with Russian roulette after ``rr_depth`` bounces (Mitsuba's ``rr_depth``, default 5).
+At every surface whose BSDF has a diffuse or glossy component, the photon
 
-    (x_p, w_p, n_p, Phi_p, depth)
+    (x_p, w_p, n_p, Phi_p, d)
 
-is written to slot ``depth * J + j`` of a preallocated buffer, so the order of the
-photon map depends on the seed only (determinism). Phi_p is the path throughput
-(power / pdf); the gather divides by J.
+is stored, Phi_p the path throughput (power / pdf; the gather divides by J) and d the
+bounce index (0 at the first surface, i.e. d + 1 light segments).
+
+Path depth follows Mitsuba's ``max_depth`` convention: it bounds the number of segments
+of the whole camera-to-light path, -1 meaning unbounded (Russian roulette alone ends the
+paths). The eye path takes at least one segment, so a photon is stored only while
+d + 1 <= max_depth - 1; the gather then keeps a photon only if the eye path's segments
+e satisfy e + d + 1 <= max_depth (see :mod:`.gather`).
+
+Memory is bounded for any depth: paths are traced in *segments* of at most
+``SEGMENT_BOUNCES`` bounces into a buffer of ``J_active * bounces`` slots (slot
+``(d - d0) * J_active + j``); the paths still alive at the end of a segment are
+compacted, their random streams included, and continue in the next one. The photon
+map's order therefore depends on the seed only (determinism).
+
+A non-finite throughput (a degenerate BSDF sample) ends that path alone and is counted;
+it never reaches the photon map.
 """
 
 from __future__ import annotations
@@ -22,12 +36,20 @@ import mitsuba as mi
 
 from .rng import make_rng
 
+#: Bounces traced per segment; deeper paths continue in a compacted next segment.
+SEGMENT_BOUNCES = 8
+#: Mitsuba's default ``rr_depth`` (its ``path`` integrator starts roulette there too).
+RR_DEPTH = 5
+#: ``max_depth`` of an unbounded path (Mitsuba's convention).
+UNBOUNDED = -1
+
 
 @dataclass
 class PhotonMap:
     """Photons of one pass, compacted: positions, arrival directions (pointing from the
     photon's origin to x_p), normals oriented towards the side the photon came from,
-    power, bounce depth, and J (photons emitted, the estimator's normaliser)."""
+    power, bounce index d, J (photons emitted, the estimator's normaliser), and how many
+    paths a non-finite throughput ended."""
 
     p: mi.Point3f
     d: mi.Vector3f
@@ -35,39 +57,60 @@ class PhotonMap:
     power: mi.Color3f
     depth: mi.UInt32
     emitted: int
+    nonfinite: int = 0
 
     def __len__(self) -> int:
         return dr.width(self.power) if dr.width(self.depth) else 0
 
 
-@dr.syntax
-def _trace(scene: mi.Scene, rng: mi.PCG32, n_photons: int, max_depth: int, rr_depth: int,
-           buf_p: mi.Point3f, buf_d: mi.Vector3f, buf_n: mi.Normal3f,
-           buf_phi: mi.Color3f, buf_valid: mi.UInt32) -> None:
-    """Trace photon paths; scatter each stored photon to slot ``depth * J + j``."""
-    j = dr.arange(mi.UInt32, n_photons)
+@dataclass
+class _Paths:
+    """State of the photon paths still alive between two segments (one lane each)."""
+
+    ray: mi.Ray3f
+    beta: mi.Color3f
+    inv_power0: mi.Float
+    rng: mi.PCG32
+
+
+def _emit(scene: mi.Scene, rng: mi.PCG32) -> tuple[_Paths, mi.Bool]:
     ray, beta, _ = scene.sample_emitter_ray(
         time=0.0, sample1=rng.next_float32(),
         sample2=mi.Point2f(rng.next_float32(), rng.next_float32()),
         sample3=mi.Point2f(rng.next_float32(), rng.next_float32()),
         active=True)
-    ray = mi.Ray3f(ray)
     beta = mi.Color3f(beta)
-    depth = mi.UInt32(0)
-    active = dr.any(beta > 0.0)
+    alive = dr.any(beta > 0.0) & dr.all(dr.isfinite(beta))
     # Roulette on the throughput relative to the emitted power, not on the power itself.
-    inv_power0 = dr.select(active, 1.0 / dr.max(beta), 0.0)
+    inv_power0 = dr.select(alive, 1.0 / dr.max(beta), 0.0)
+    return _Paths(mi.Ray3f(ray), beta, inv_power0, rng), alive
+
+
+@dr.syntax
+def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UInt32,
+                   bounces: int, last_depth: mi.UInt32, rr_depth: int,
+                   buf_p: mi.Point3f, buf_d: mi.Vector3f, buf_n: mi.Normal3f,
+                   buf_phi: mi.Color3f, buf_valid: mi.UInt32) -> tuple[mi.Bool, mi.Bool]:
+    """Trace up to ``bounces`` bounces of every alive path, storing the photon of bounce
+    d = depth0 + step in slot ``step * lanes + lane``. Stops a path after bounce index
+    ``last_depth`` (the last one that may be stored). Returns (alive, went non-finite)."""
+    lanes = dr.width(alive)
+    lane = dr.arange(mi.UInt32, lanes)
+    ray, beta, rng = paths.ray, paths.beta, paths.rng
+    step = mi.UInt32(0)
+    bad = mi.Bool(False)
     ctx = mi.BSDFContext(mi.TransportMode.Importance)
 
-    while active:
-        si = scene.ray_intersect(ray, active)
-        active &= si.is_valid()
+    while alive & (step < bounces):
+        depth = depth0 + step
+        si = scene.ray_intersect(ray, alive)
+        alive &= si.is_valid()
         bsdf = si.bsdf(ray)
 
         # Store at every surface with a non-delta (diffuse or glossy) component.
-        store = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        store = alive & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         n_oriented = dr.select(dr.dot(si.n, ray.d) < 0.0, si.n, -si.n)
-        slot = depth * n_photons + j
+        slot = step * lanes + lane
         dr.scatter(buf_p, si.p, slot, store)
         dr.scatter(buf_d, ray.d, slot, store)
         dr.scatter(buf_n, n_oriented, slot, store)
@@ -75,36 +118,75 @@ def _trace(scene: mi.Scene, rng: mi.PCG32, n_photons: int, max_depth: int, rr_de
         dr.scatter(buf_valid, mi.UInt32(1), slot, store)
 
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
-                                      mi.Point2f(rng.next_float32(), rng.next_float32()), active)
+                                      mi.Point2f(rng.next_float32(), rng.next_float32()), alive)
         beta *= bsdf_weight
         ray = si.spawn_ray(si.to_world(bs.wo))
-        depth += 1
+        step += 1
 
         # Russian roulette on the throughput, unbiased by dividing by the survival odds.
-        q = dr.minimum(dr.max(beta) * inv_power0, 0.95)
-        roulette = depth >= rr_depth
+        q = dr.minimum(dr.max(beta) * paths.inv_power0, 0.95)
+        roulette = depth + 1 >= rr_depth
         survive = rng.next_float32() < q
         beta = dr.select(roulette, beta / dr.maximum(q, 1e-8), beta)
-        active &= (~roulette | survive) & (depth < max_depth) & dr.any(beta > 0.0)
+        finite = dr.all(dr.isfinite(beta))
+        bad |= alive & ~finite
+        alive &= (~roulette | survive) & (depth < last_depth) & dr.any(beta > 0.0) & finite
+
+    paths.ray, paths.beta, paths.rng = ray, beta, rng
+    return alive, bad
+
+
+def _concat(arrays: list) -> object:
+    """Concatenate 1D arrays or 3-vectors of them (``dr.concat`` takes flat arrays only)."""
+    first = arrays[0]
+    if dr.depth_v(first) == 1:
+        return dr.concat(arrays)
+    return type(first)(*(dr.concat([a[i] for a in arrays]) for i in range(len(first))))
 
 
 def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
-                  rr_depth: int = 3) -> PhotonMap:
-    """Emit ``n_photons`` photons with random stream ``seed`` and return the photon map."""
-    size = n_photons * max_depth
-    buf_p = dr.zeros(mi.Point3f, size)
-    buf_d = dr.zeros(mi.Vector3f, size)
-    buf_n = dr.zeros(mi.Normal3f, size)
-    buf_phi = dr.zeros(mi.Color3f, size)
-    buf_valid = dr.zeros(mi.UInt32, size)
+                  rr_depth: int = RR_DEPTH) -> PhotonMap:
+    """Emit ``n_photons`` photons with random stream ``seed`` and return the photon map
+    of every stored bounce that can still be part of a path of at most ``max_depth``
+    segments (-1: unbounded)."""
+    max_bounces = None if max_depth < 0 else max_depth - 1   # storable bounce indices
+    # Bounce index after which no photon may be stored (the largest UInt32: never).
+    last_depth = mi.UInt32(0xFFFFFFFF if max_bounces is None else max(max_bounces - 1, 0))
+    chunks: list[tuple] = []
+    nonfinite = 0
     rng = make_rng(n_photons, seed)
-    _trace(scene, rng, n_photons, max_depth, rr_depth, buf_p, buf_d, buf_n, buf_phi, buf_valid)
-    dr.eval(buf_p, buf_d, buf_n, buf_phi, buf_valid)
-    index = dr.compress(buf_valid > 0)
-    slot_depth = index // n_photons
-    pm = PhotonMap(
-        p=dr.gather(mi.Point3f, buf_p, index), d=dr.gather(mi.Vector3f, buf_d, index),
-        n=dr.gather(mi.Normal3f, buf_n, index), power=dr.gather(mi.Color3f, buf_phi, index),
-        depth=mi.UInt32(slot_depth), emitted=n_photons)
+    paths, alive = _emit(scene, rng)
+    depth0 = 0
+    while max_bounces is None or depth0 < max_bounces:
+        lanes = dr.width(alive)
+        bounces = SEGMENT_BOUNCES if max_bounces is None else min(SEGMENT_BOUNCES, max_bounces - depth0)
+        size = lanes * bounces
+        buf_p, buf_d, buf_n = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size), dr.zeros(mi.Normal3f, size)
+        buf_phi, buf_valid = dr.zeros(mi.Color3f, size), dr.zeros(mi.UInt32, size)
+        alive, bad = _trace_segment(scene, paths, alive, dr.opaque(mi.UInt32, depth0), bounces, last_depth,
+                                    rr_depth, buf_p, buf_d, buf_n, buf_phi, buf_valid)
+        dr.eval(buf_p, buf_d, buf_n, buf_phi, buf_valid, alive, bad, paths.ray, paths.beta, paths.rng)
+        nonfinite += int(dr.count(bad)[0]) if lanes else 0
+        index = dr.compress(buf_valid > 0)
+        if dr.width(index):
+            chunks.append((dr.gather(mi.Point3f, buf_p, index), dr.gather(mi.Vector3f, buf_d, index),
+                           dr.gather(mi.Normal3f, buf_n, index), dr.gather(mi.Color3f, buf_phi, index),
+                           mi.UInt32(index // lanes + depth0)))
+        depth0 += bounces
+        survivors = dr.compress(alive)
+        if dr.width(survivors) == 0:
+            break
+        rng_next = mi.PCG32()
+        rng_next.state = dr.gather(type(paths.rng.state), paths.rng.state, survivors)
+        rng_next.inc = dr.gather(type(paths.rng.inc), paths.rng.inc, survivors)
+        paths = _Paths(dr.gather(mi.Ray3f, paths.ray, survivors), dr.gather(mi.Color3f, paths.beta, survivors),
+                       dr.gather(mi.Float, paths.inv_power0, survivors), rng_next)
+        alive = dr.full(mi.Bool, True, dr.width(survivors))
+
+    if not chunks:
+        return PhotonMap(dr.zeros(mi.Point3f, 0), dr.zeros(mi.Vector3f, 0), dr.zeros(mi.Normal3f, 0),
+                         dr.zeros(mi.Color3f, 0), dr.zeros(mi.UInt32, 0), n_photons, nonfinite)
+    parts = chunks[0] if len(chunks) == 1 else tuple(_concat([c[k] for c in chunks]) for k in range(5))
+    pm = PhotonMap(*parts, emitted=n_photons, nonfinite=nonfinite)
     dr.eval(pm.p, pm.d, pm.n, pm.power, pm.depth)
     return pm

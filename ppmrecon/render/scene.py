@@ -59,6 +59,26 @@ class LoadedScene:
     source_version: str = "3.0.0"  # the file's <scene version>; 0.x went through mi06
     notes: list[str] = field(default_factory=list)  # lossy or noteworthy translations (0.6 files)
 
+    @property
+    def label(self) -> str:
+        return str(self.path) if self.path is not None else self.name
+
+    def depths(self) -> tuple[int, int]:
+        """(max_depth, rr_depth) of the file's integrator, Mitsuba's convention: max_depth
+        counts the segments of a whole camera-to-light path, -1 (Mitsuba's default when
+        the file names none) is unbounded; rr_depth defaults to Mitsuba's 5."""
+        max_depth = -1 if self.max_depth is None else int(self.max_depth)
+        if max_depth == 0 or max_depth < -1:
+            raise SceneError(f"{self.label}: integrator max_depth {max_depth}: must be positive or -1 (unbounded)")
+        rr = next((self.integrator_params[k] for k in ("rr_depth", "rrDepth") if k in self.integrator_params), 5)
+        try:
+            rr_depth = int(rr)
+        except (TypeError, ValueError):
+            raise SceneError(f"{self.label}: integrator rr_depth '{rr}' is not an integer") from None
+        if rr_depth <= 0:
+            raise SceneError(f"{self.label}: integrator rr_depth {rr_depth}: must be positive")
+        return max_depth, rr_depth
+
 
 def builtin_scenes() -> dict[str, Path]:
     """Built-in scene names -> XML paths (every ``configs/scenes/*.xml``)."""
