@@ -39,7 +39,7 @@ def pass_timings(scene_name: str, res: int, photons: int, passes: int) -> dict:
     from ppmrecon.render.scene import load_scene
 
     loaded = load_scene(scene_name, resolution=(res, res))
-    depth = loaded.max_depth or 8
+    depth = loaded.depths()[0]
     out: dict = {"scene": scene_name, "resolution": f"{res}x{res}", "photons": photons, "max_depth": depth}
     for layout in ("single", "multi"):
         r = Renderer(loaded.scene, RenderSettings(passes=passes + 1, photons=photons, layout=layout,
@@ -96,7 +96,7 @@ def convergence(res: int, photons: int, max_passes: int, ref_spp: int) -> dict:
     ref = np.asarray(mi.render(loaded.scene, spp=ref_spp), np.float32)
     ref_seconds = time.perf_counter() - t
     r = Renderer(loaded.scene, RenderSettings(passes=max_passes, photons=photons, seed=7,
-                                              max_depth=loaded.max_depth or 8))
+                                              max_depth=loaded.depths()[0]))
     curve: list[dict] = []
 
     def on_pass(rr):

@@ -91,6 +91,10 @@ def build_parser() -> ArgumentParser:
                        help="fppm: r_min as a fraction of each chain's initial radius (default 0.25)")
     tests.add_argument("--per-channel", action="store_true",
                        help="fppm: F-test R, G and B separately (chromatic or textured lights) instead of luminance")
+    p.add_argument("--direct", choices=("none", "glossy", "all"), default="none",
+                   help="direct lighting by emitter + BSDF sampling (MIS) at gather points, photons for "
+                        "the indirect part only there: none, glossy (gather points with a glossy BSDF) "
+                        "or all (default: none)")
     p.add_argument("--single", action="store_true",
                    help="render the conventional single-bandwidth image (one chain, one eye path) "
                         "into a plain R,G,B EXR")
@@ -178,7 +182,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         method=args.method, passes=args.passes if args.passes else (None if args.time else DEFAULT_PASSES),
         time_budget=args.time, photons=args.photons, seed=args.seed, kernel=args.kernel,
         max_depth=max_depth, rr_depth=rr_depth, alpha=args.alpha, knn=args.knn,
-        single_knn=args.single_knn or RenderSettings.single_knn, layout=layout, method_params=params)
+        single_knn=args.single_knn or RenderSettings.single_knn, direct=args.direct, layout=layout,
+        method_params=params)
     output = args.output or _default_output(loaded.name, args.method, args.single)
 
     renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)

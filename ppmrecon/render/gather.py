@@ -63,11 +63,14 @@ class GatherResult:
 
 
 def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant",
-           stats: list["CellStatistics"] | None = None, max_depth: int = -1) -> GatherResult:
+           stats: list["CellStatistics"] | None = None, max_depth: int = -1,
+           indirect_only: mi.Bool | None = None) -> GatherResult:
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
     0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
     slot) also accumulate the per-cell statistics of the photons inside each radius.
-    ``max_depth``: segments of the whole path (-1: unbounded)."""
+    ``max_depth``: segments of the whole path (-1: unbounded). ``indirect_only``: gather
+    points whose direct light is estimated apart (:mod:`.direct`); they skip the photons
+    that arrive straight from an emitter (bounce index 0)."""
     if stats is not None and len(stats) != len(radii):
         raise ValueError("gather: one statistics target per chain slot")
     n_slots = len(radii)
@@ -96,6 +99,8 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     bounded = max_depth >= 0
     if bounded:
         last_bounce = dr.opaque(mi.Int32, max_depth - 1) - mi.Int32(gp.segments)
+    if indirect_only is not None:
+        first_bounce = dr.select(indirect_only, mi.Int32(1), mi.Int32(0))
     if stats is not None:
         frame_s, frame_t = mi.coordinate_system(si.sh_frame.n)
 
@@ -110,8 +115,12 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         w_p = -dr.gather(mi.Vector3f, grid.d, k, ok)
         cos_g = dr.abs(dr.dot(w_p, si.n))
         ok &= cos_g > 1e-4
-        if bounded:
-            ok &= mi.Int32(dr.gather(mi.UInt32, grid.depth, k, ok)) <= last_bounce
+        if bounded or indirect_only is not None:
+            bounce = mi.Int32(dr.gather(mi.UInt32, grid.depth, k, ok))
+            if bounded:
+                ok &= bounce <= last_bounce
+            if indirect_only is not None:
+                ok &= bounce >= first_bounce
         f_cos = bsdf.eval(ctx, si, si.to_local(w_p), ok)
         contrib = f_cos / cos_g * dr.gather(mi.Color3f, grid.power, k, ok)
         finite = dr.all(dr.isfinite(contrib))

@@ -4,10 +4,12 @@ One pass i = 1, 2, ... reads top to bottom:
 
     photons  = trace_photons(scene, J)                      photon pass
     A, B     = trace_eye(seed_A), trace_eye(seed_B)         two decorrelated eye paths
+    D_A, D_B = direct_light(A), direct_light(B)             optional: MIS direct light (.direct)
     r_1      = knn_radius(A) * (1/4, 1/(2 sqrt 2), ..., 1)  initial bandwidths (pass 1)
     grid     = build_grid(photons, cell from the radii)     one photon map for all chains
     S_y      = gather(A, [r_y]);  S_z = gather(B, [r_z1..r_z4])
-    E_ik     = L_e + beta * S_ik / J                        per-pass estimate, chain k
+    E_ik     = L_e + beta * (S_ik / J + D)                  per-pass estimate, chain k (S without
+                                                            direct photons where D is used)
     mean_k, M2_k  <- Welford(E_ik)                          pixel value and its variance
     r_{i+1}  = controller.update(i, gather statistics)      bandwidth update
 
@@ -28,6 +30,7 @@ import mitsuba as mi
 import numpy as np
 
 from .. import buffers as B
+from .direct import DIRECT_MODES, direct_light, uses_direct
 from .controllers import CHAIN_SCALES, SINGLE_SCALE, Controller, make_controller
 from .estimates import PlainMean, RunningMean
 from .eye import GatherPoints, trace_eye
@@ -35,7 +38,7 @@ from .gather import gather
 from .grid import build_grid
 from .kernels import KERNELS
 from .photons import RR_DEPTH, trace_photons
-from .rng import EYE_A, EYE_B, EYE_SINGLE, PHOTONS, stream_seed
+from .rng import DIRECT_OFFSET, EYE_A, EYE_B, EYE_SINGLE, PHOTONS, stream_seed
 
 LAYOUTS = ("multi", "single", "shared")
 STAGES = ("photons", "eye", "grid", "gather", "update")
@@ -60,6 +63,8 @@ class RenderSettings:
     #: k of the single-bandwidth baseline's k-NN initial radius (``layout="single"``):
     #: k = 10 is the r_20 / sqrt(2) radius that paper 002 calls "roughly k = 10".
     single_knn: int = 10
+    #: Direct lighting by MIS at gather points: "none", "glossy" or "all" (see .direct).
+    direct: str = "none"
     layout: str = "multi"
     method_params: dict[str, Any] = field(default_factory=dict)
     #: Initial radii are clamped to [min_frac, max_frac] x the scene's bounding radius.
@@ -81,6 +86,8 @@ class RenderSettings:
             raise ValueError(f"unknown kernel '{self.kernel}' (choose {', '.join(KERNELS)})")
         if self.layout not in LAYOUTS:
             raise ValueError(f"unknown layout '{self.layout}'")
+        if self.direct not in DIRECT_MODES:
+            raise ValueError(f"unknown direct-lighting mode '{self.direct}' (choose {', '.join(DIRECT_MODES)})")
 
 
 @dataclass
@@ -158,18 +165,32 @@ class Renderer:
         self.passes_done = 0
         #: Non-finite terms dropped, by where they arose (photon paths, eye paths, photon
         #: contributions in the gather, whole per-pass estimates).
-        self.nonfinite = {"photons": 0, "eye": 0, "gather": 0, "estimate": 0}
+        self.nonfinite = {"photons": 0, "eye": 0, "direct": 0, "gather": 0, "estimate": 0}
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
 
     # -- one pass ----------------------------------------------------------------------
+    def _eye_streams(self) -> tuple[int, ...]:
+        return (EYE_A, EYE_B) if self.settings.layout == "multi" else (EYE_SINGLE,)
+
     def _eye_points(self, i: int) -> list[GatherPoints]:
         s = self.settings
-        if s.layout == "multi":
-            return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_A), s.max_depth, s.rr_depth),
-                    trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_B), s.max_depth, s.rr_depth)]
-        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, EYE_SINGLE), s.max_depth, s.rr_depth)]
+        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth)
+                for stream in self._eye_streams()]
+
+    def _direct(self, i: int, points: list[GatherPoints]) -> list[tuple[mi.Bool, mi.Color3f] | None]:
+        """Per eye hit point: (where direct light is estimated apart, its estimate)."""
+        s = self.settings
+        if s.direct == "none":
+            return [None] * len(points)
+        out = []
+        for stream, p in zip(self._eye_streams(), points):
+            use = uses_direct(p, s.direct, s.max_depth)
+            light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream))
+            self.nonfinite["direct"] += bad
+            out.append((use, light))
+        return out
 
     def _chains_of(self, point_index: int) -> list[int]:
         """Which chains gather at eye point ``point_index`` (A = 0, B = 1)."""
@@ -208,6 +229,7 @@ class Renderer:
         t1 = clock()
         points = self._eye_points(i)
         self.nonfinite["eye"] += sum(p.nonfinite for p in points)
+        direct = self._direct(i, points)
         t2 = clock()
         if i == 1:
             self.controller.start(self._initial_radii(points, photon_map.p))
@@ -219,7 +241,8 @@ class Renderer:
         for j, p in enumerate(points):
             chains = self._chains_of(j)
             res = gather(p, [radii[c] for c in chains], grid, s.kernel,
-                         self.controller.stats_targets(chains), max_depth=s.max_depth)
+                         self.controller.stats_targets(chains), max_depth=s.max_depth,
+                         indirect_only=None if direct[j] is None else direct[j][0])
             self.nonfinite["gather"] += res.nonfinite
             results.append((chains, res))
         t4 = clock()
@@ -228,7 +251,10 @@ class Renderer:
         for j, (chains, res) in enumerate(results):
             p = points[j]
             for slot, c in enumerate(chains):
-                estimate = p.emitted + dr.select(p.found, p.beta * res.flux[slot] * inv_j, 0.0)
+                reflected = res.flux[slot] * inv_j
+                if direct[j] is not None:
+                    reflected += direct[j][1]
+                estimate = p.emitted + dr.select(p.found, p.beta * reflected, 0.0)
                 # Non-finite terms were dropped at their source; this is the last guard
                 # (e.g. a finite sum that overflows), counted apart in the header.
                 finite = dr.all(dr.isfinite(estimate))
@@ -303,6 +329,7 @@ class Renderer:
             header[f"ppmrecon.nonfinite.{k}"] = v
         if s.layout == "single":
             header["ppmrecon.single_knn"] = s.single_knn
+        header["ppmrecon.direct"] = s.direct
         header.update(self.controller.header())
         for k, v in self.stage_seconds.items():
             header[f"ppmrecon.seconds.{k}"] = v

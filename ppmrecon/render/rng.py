@@ -11,6 +11,8 @@ import mitsuba as mi
 
 # Purpose tags keep the photon, eye-A and eye-B streams of one pass independent.
 PHOTONS, EYE_A, EYE_B, EYE_SINGLE = 1, 2, 3, 4
+#: Direct-lighting samples at the gather points of eye stream EYE_x: DIRECT_OFFSET + x.
+DIRECT_OFFSET = 16
 
 
 def stream_seed(seed: int, pass_index: int, purpose: int) -> int:
