@@ -47,11 +47,28 @@ TIE = 0.05
 NAMES = ["sppm", "cppm", "fppm", "oidn+sppm", "ours+sppm", "ours+cppm", "ours+fppm"]
 
 
-def renderer(scene, name, layout, method, photons, seed, passes=None, budget=None):
+def renderer(loaded, name, layout, method, photons, seed, passes=None, budget=None):
+    """A renderer for a loaded scene with its own path depth (issue 20); the single layout
+    starts at the k = 10 k-NN radius (RenderSettings.single_knn, stated in the report)."""
     from ppmrecon.render.integrator import Renderer, RenderSettings
 
-    return Renderer(scene, RenderSettings(method=method, passes=passes, time_budget=budget, photons=photons,
-                                          seed=seed, layout=layout), scene_name=name)
+    max_depth, rr_depth = loaded.depths()
+    return Renderer(loaded.scene, RenderSettings(method=method, passes=passes, time_budget=budget, photons=photons,
+                                                 seed=seed, layout=layout, max_depth=max_depth, rr_depth=rr_depth),
+                    scene_name=name)
+
+
+#: How the single-bandwidth baselines of a results.json were rendered; files from before
+#: issue 20 carry no such entry.
+LEGACY_BASELINE = ("b = 0.354 r_20 (the second-smallest of the five initial radii, about 2.5 photons: the "
+                   "noisiest single radius), path depth capped at 8")
+
+
+def baseline_text() -> str:
+    from ppmrecon.render.integrator import RenderSettings
+
+    return (f"the k = {RenderSettings.single_knn} k-NN radius (r_20 / sqrt 2, what paper 002 calls roughly "
+            "k = 10), the scene's own path depth")
 
 
 def timed_denoise(buf: B.BufferFile, model) -> tuple[np.ndarray, float]:
@@ -130,7 +147,7 @@ def references(scenes: dict, width: int, photons: int, passes: int, cache: Path)
             path = ref_path(cache, key, width, passes, photons, seed)
             if not path.exists():
                 t = time.perf_counter()
-                res = renderer(loaded.scene, key, "single", "sppm", photons, seed, passes=passes).run()
+                res = renderer(loaded, key, "single", "sppm", photons, seed, passes=passes).run()
                 B.write_rgb(path, res.estimates[0], header=res.header)
                 print(f"{key}: reference seed {seed} in {time.perf_counter() - t:.0f}s", flush=True)
             refs.append(B.read_rgb(path)[0])
@@ -215,13 +232,14 @@ def main() -> None:
     reference_sets = references(scenes, width, photons, ref_passes, cache)
     if args.refs_only:
         return
-    report: dict = {"quick": q, "width": width, "photons": photons, "budgets": budgets, "reference_passes": ref_passes,
+    report: dict = {"quick": q, "single_baseline": baseline_text(), "width": width, "photons": photons,
+                    "budgets": budgets, "reference_passes": ref_passes,
                     "cpus": os.cpu_count(), "cpu": _cpu_name(), "model": str(args.model), "trim": TRIM, "scenes": {},
                     "command": " ".join(["benchmarks/study.py", *sys.argv[1:]])}
     t_all = time.perf_counter()
     preset_buffers, preset_singles, ref_of = {}, {}, {}
     for key, (loaded, refs) in reference_sets.items():
-        sc = loaded.scene
+        sc = loaded
         ref = ref_of[key] = 0.5 * (refs[0] + refs[1])
         entry: dict = {"resolution": f"{loaded.width}x{loaded.height}", **agreement(refs)}
 
@@ -427,6 +445,8 @@ def markdown(r: dict) -> str:
              "the mean's own noise is about a quarter of it. Every entry's relMSE includes that noise, so where "
              "it is close to the entries' figures the ratios between entries are compressed towards 1.", "",
              f"Command: `{r.get('command', 'benchmarks/study.py')}`", "",
+             "SPPM, CPPM and FPPM (without *ours*) are single-bandwidth renders (`--single`) whose initial "
+             f"radius is {r.get('single_baseline', LEGACY_BASELINE)}.", "",
              "relMSE as SPEC section 7 (eps 0.01); *trimmed* leaves out the "
              f"{trim} of pixels with the largest error, so that a few fireflies do not decide the figure.", "",
              "## Where we win and where we lose", "",
