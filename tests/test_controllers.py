@@ -203,7 +203,8 @@ def run_synthetic(ctrl, field, pixels=256, passes=30, per_pass=40, seed=0):
 def test_uniform_photons_equal_contributions_keep_radius(method):
     ratio = run_synthetic(make_controller(method), uniform_equal)
     # Repeated tests on growing samples do reject now and then (about alpha per test):
-    # over 30 passes ~30% (CPPM, alpha 0.05) and ~15% (FPPM, 0.01) of the pixels shrink.
+    # over 30 passes ~30% (CPPM, alpha 0.05) and ~8% (FPPM, 0.01, m = t J; ~15% when m
+    # counted the photons in the disc) of the pixels shrink.
     assert np.median(ratio) == 1.0 and np.mean(ratio == 1.0) > 0.5, np.mean(ratio == 1.0)
 
 
@@ -240,6 +241,76 @@ def test_fppm_floor_binds_when_always_rejecting():
     bound = 0.25 * H.fppm_floor_factor(passes - 1, 2 / 3)
     assert ratio.min() >= 0.25 * H.fppm_floor_factor(passes, 2 / 3) * (1 - 1e-6)
     assert np.median(ratio) < 1.2 * bound
+
+
+def _fill_moments(ctrl, sums, sumsqs):
+    """Write per-pixel cell moments, (channels, 12, pixels) each, into chain 0's
+    statistics in CellStatistics' layout [pixel][cell][channel][sum, sum of squares]."""
+    data = np.stack([sums, sumsqs], axis=-1).transpose(2, 1, 0, 3)  # pixel, cell, channel, 2
+    ctrl.stats_targets([0])[0].data = mi.Float(data.astype(np.float32).ravel())
+
+
+def _null_moments(rng, n, channels):
+    """Uniform cells and exponential contributions for n[p] photons at pixel p."""
+    pixel = np.repeat(np.arange(n.size), n)
+    index = pixel * H.N_CELLS + rng.integers(0, H.N_CELLS, pixel.size)
+    psi = rng.exponential(1.0, (channels, pixel.size))
+    moments = [np.stack([np.bincount(index, w, n.size * H.N_CELLS).reshape(n.size, H.N_CELLS).T
+                         for w in weights]) for weights in (psi, psi * psi)]
+    return moments[0], moments[1]
+
+
+@pytest.mark.parametrize("per_channel", [False, True])
+def test_fppm_controller_counts_light_paths(per_channel):
+    """Issue 20: m of Eq. 7 is every light path since the radius last changed, t J
+    (paper 000 Sec. 5.1), not the photons that fell in the disc. Through the controller
+    (float32 statistics, Dr.Jit ops): uniform photons shrink a fraction ~alpha of the
+    pixels (per channel at alpha / 3 each, Bonferroni), the same pixels as the numpy
+    reference, and two photons in one cell no longer give F = inf."""
+    photons, pixels, expected = 50_000, 20_000, 100
+    ctrl = make_controller("fppm", defaults={"alpha": 2 / 3, "knn": 20, "photons": photons},
+                           per_channel=per_channel)
+    assert ctrl.photons == photons
+    assert ctrl.test_significance == pytest.approx(0.01 / (3 if per_channel else 1))
+    rng = np.random.default_rng(11)
+    n = rng.poisson(expected, pixels)
+    n[:2] = [2, 0]  # pixel 0: both photons in one cell; pixel 1: none
+    sums, sumsqs = _null_moments(rng, n, ctrl.channels)
+    sums[:, :, 0] = sumsqs[:, :, 0] = 0.0
+    sums[:, 3, 0], sumsqs[:, 3, 0] = 2.0, 2.0
+    ctrl.start([mi.Float(np.ones(pixels, np.float32))])
+    _fill_moments(ctrl, sums, sumsqs)
+    result = GatherResult(flux=[dr.zeros(mi.Color3f, pixels)], count=[mi.UInt32(n.astype(np.uint32))])
+    # Before the update t = 0: m = max(t J, N) = N.
+    np.testing.assert_array_equal(np.asarray(ctrl.samples(0)), 0.0)
+    ctrl.update(1, [([0], result)])
+    shrunk = np.asarray(ctrl.radii()[0]) < 1.0
+    assert not shrunk[:2].any()
+    # The same decisions as numpy with m = t J = 1 x J (float32 rounding aside).
+    m = H.fppm_samples(np.ones(pixels), photons, n.astype(np.float64))
+    f_c = H.f_critical_table(ctrl.test_significance)[np.minimum(m, H.F_TABLE_SIZE).astype(int)]
+    ref = np.zeros(pixels, bool)
+    for ch in range(ctrl.channels):
+        ref |= H.anova_f(list(sums[ch]), list(sumsqs[ch]), m) > f_c
+    assert np.mean(shrunk != ref) < 1e-3
+    rate = shrunk.mean()
+    family = 1 - (1 - ctrl.test_significance) ** ctrl.channels
+    lo, hi = sps.binom.ppf(1e-5, pixels, family) / pixels, sps.binom.isf(1e-5, pixels, family) / pixels
+    assert lo <= rate <= hi, (rate, lo, hi)
+    # Kept pixels go on counting passes: m = 2 J after the next pass; shrunk ones restart.
+    empty = GatherResult(flux=[dr.zeros(mi.Color3f, pixels)], count=[dr.zeros(mi.UInt32, pixels)])
+    ctrl.update(2, [([0], empty)])
+    again = np.asarray(ctrl.radii()[0]) < np.where(shrunk, 0.7, 1.0) * (1 - 1e-6)
+    samples = np.asarray(ctrl.samples(0))
+    np.testing.assert_array_equal(samples[~shrunk & ~again], 2.0 * photons)
+    np.testing.assert_array_equal(samples[shrunk & ~again], 1.0 * photons)
+
+
+def test_fppm_photons_option_is_checked():
+    with pytest.raises(ValueError, match="photons"):
+        FPPMController(photons=0)
+    assert make_controller("fppm").photons == 1 << 17
+    assert "photons" not in make_controller("cppm", defaults={"photons": 7}).__dict__
 
 
 # ------------------------------------------------------------------------ renderer

@@ -242,12 +242,21 @@ class FPPMController:
     """F-test PPM (paper 000 Sec. 3.2 and 5.1).
 
     Per pixel and chain: per-cell sums S_c and sums of squares Q_c of the photon
-    contributions psi = luminance(f * Phi) (or each of R, G, B with ``per_channel``),
-    and the common sample count m (photons inside the disc), since the radius last
-    changed. After every pass, F of Eq. 7 is compared with F_c, the (1 - significance)
-    quantile of F(11, 12 (m - 1)) from a table built once; Eq. 21 then keeps r if
-    F <= F_c, else sets r = max(k r, r_min (i + 1)^((alpha - 1) / 2)) and resets the
-    statistics. With ``per_channel`` a pixel shrinks if any channel rejects.
+    contributions psi = luminance(f * Phi) (or each of R, G, B with ``per_channel``)
+    since the radius last changed, the number of passes t since then, and the photons N
+    filed in the cells. As in the paper, every light path of those passes is one sample
+    of each cell (zero where its photon fell elsewhere or missed the disc), so the common
+    sample count of Eq. 7 is m = t J, J = ``photons`` emitted per pass (Sec. 5.1; see
+    :func:`.hypothesis.fppm_samples`). After every pass, F of Eq. 7 is compared with F_c,
+    the (1 - significance) quantile of F(11, 12 (m - 1)) from a table built once; Eq. 21
+    then keeps r if F <= F_c, else sets r = max(k r, r_min (i + 1)^((alpha - 1) / 2)) and
+    resets the statistics.
+
+    ``significance`` bounds the chance that a pixel of a uniform region shrinks after one
+    test. With ``per_channel`` a pixel shrinks if any channel rejects, so each channel is
+    tested at significance / 3 (Bonferroni, :func:`.hypothesis.fppm_test_significance`):
+    the per-pixel rate is ~significance for independent channels and significance / 3
+    for a white light (paper 000 tests each channel at alpha_F, up to 3 alpha_F per pixel).
 
     r_min is ``r_min_frac`` times the chain's initial radius at that pixel (the paper
     leaves it open; its VCM+ experiments use 0.1% of r_1). It only binds where the test
@@ -257,11 +266,6 @@ class FPPMController:
     most ~5% of the ~z^4 pixels and the results equal those of 0.05; with 1.0 (never
     below SPPM's schedule) the small bandwidths gain ~5% relMSE but ~z^4 loses 10-25%
     at light and caustic edges, where it can no longer shrink.
-
-    Samples: each photon inside the disc counts as one sample for every cell (SPEC
-    section 4). The paper counts all J emitted light paths (zeros included, m = tJ);
-    with equal contributions our F is then larger by about n / (n - 1) = 1.09 under the
-    null, so the effective significance is about 0.02 instead of 0.01.
     """
 
     significance: float = 0.01
@@ -269,6 +273,7 @@ class FPPMController:
     alpha: float = 2.0 / 3.0
     r_min_frac: float = FPPM_R_MIN_FRAC
     per_channel: bool = False
+    photons: int = 1 << 17
     name: str = "fppm"
     stats: str = "moments"
     _r: list[mi.Float] = field(default_factory=list)
@@ -279,15 +284,19 @@ class FPPMController:
         _check_open_unit("alpha", self.alpha)
         if not 0.0 < self.r_min_frac <= 1.0:
             raise ValueError(f"r_min_frac must lie in (0, 1], got {self.r_min_frac}")
+        if int(self.photons) != self.photons or self.photons <= 0:
+            raise ValueError(f"photons must be a positive integer, got {self.photons}")
         self.channels = 3 if self.per_channel else 1
-        self._f_table = mi.Float(H.f_critical_table(self.significance).astype("float32"))
+        self.test_significance = H.fppm_test_significance(self.significance, self.channels)
+        self._f_table = mi.Float(H.f_critical_table(self.test_significance).astype("float32"))
 
     def start(self, r1: list[mi.Float]) -> None:
         n = dr.width(r1[0])
         self._r = [mi.Float(r) for r in r1]
         self._r_min = [mi.Float(r) * self.r_min_frac for r in r1]
         self._stats = [CellStatistics(n, "moments", self.channels) for _ in r1]
-        self._m = [dr.zeros(mi.UInt32, n) for _ in r1]
+        self._passes = [dr.zeros(mi.UInt32, n) for _ in r1]  # t, passes since the reset
+        self._in_disc = [dr.zeros(mi.UInt32, n) for _ in r1]  # N, photons filed since then
         dr.eval(self._r_min)
 
     def radii(self) -> list[mi.Float]:
@@ -296,36 +305,51 @@ class FPPMController:
     def stats_targets(self, chains: Sequence[int]) -> list[CellStatistics]:
         return [self._stats[c] for c in chains]
 
-    def critical_value(self, m: mi.UInt32) -> mi.Float:
-        """F_c for sample count m, looked up in the table (inf for m < 2)."""
-        return dr.gather(mi.Float, self._f_table, dr.minimum(m, H.F_TABLE_SIZE))
+    def samples(self, chain: int) -> Any:
+        """m of Eq. 7 per pixel (float64): t J, the light paths since the reset."""
+        return H.fppm_samples(_float64(self._passes[chain]), self.photons,
+                              _float64(self._in_disc[chain]), DRJIT_OPS)
+
+    def critical_value(self, m: Any) -> mi.Float:
+        """F_c for sample count m (UInt32 or float64), looked up in the table (inf for
+        m < 2; the last entry beyond the table, where F_c has converged)."""
+        return dr.gather(mi.Float, self._f_table, mi.UInt32(dr.minimum(m, H.F_TABLE_SIZE)))
 
     def reject(self, chain: int) -> mi.Bool:
         """Where chain ``chain``'s F-test rejects the null hypothesis (Eq. 7 > F_c)."""
-        m = self._m[chain]
-        m64 = _float64(m)
+        m = self.samples(chain)
         f_c = _float64(self.critical_value(m))
         reject = dr.zeros(mi.Bool, dr.width(m))
         for ch in range(self.channels):
             sums, sumsqs = self._stats[chain].cell_moments(ch)
-            reject |= H.anova_f(sums, sumsqs, m64, DRJIT_OPS) > f_c
-        return reject
+            reject |= H.anova_f(sums, sumsqs, m, DRJIT_OPS) > f_c
+        # No photon since the reset: F = 0 already; spelled out, it needs no statistics.
+        return reject & (self._in_disc[chain] > 0)
 
     def update(self, pass_index: int, results: Any) -> None:
         floor_factor = dr.opaque(mi.Float, H.fppm_floor_factor(pass_index, self.alpha))
+        # Gather points per chain this pass (one per pixel today; each brings J samples).
+        seen: dict[int, list[Any]] = {}
         for c, count in _per_chain_counts(results):
-            self._m[c] = self._m[c] + count
+            gathers, photons = seen.get(c, [0, 0])
+            seen[c] = [gathers + 1, photons + count]
+        for c, (gathers, photons) in seen.items():
+            self._passes[c] = self._passes[c] + gathers
+            self._in_disc[c] = self._in_disc[c] + photons
             reject = self.reject(c)
             self._r[c] = H.fppm_radius(self._r[c], reject, self.k, self._r_min[c] * floor_factor, DRJIT_OPS)
-            self._m[c] = dr.select(reject, 0, self._m[c])
-            dr.eval(self._r[c], self._m[c], reject)
+            self._passes[c] = dr.select(reject, 0, self._passes[c])
+            self._in_disc[c] = dr.select(reject, 0, self._in_disc[c])
+            dr.eval(self._r[c], self._passes[c], self._in_disc[c], reject)
             self._stats[c].reset(reject)
 
     def header(self) -> dict[str, Any]:
         return {"ppmrecon.method": self.name, "ppmrecon.fppm.significance": self.significance,
+                "ppmrecon.fppm.test_significance": self.test_significance,
                 "ppmrecon.fppm.k": self.k, "ppmrecon.fppm.alpha": self.alpha,
                 "ppmrecon.fppm.r_min_frac": self.r_min_frac,
                 "ppmrecon.fppm.per_channel": bool(self.per_channel),
+                "ppmrecon.fppm.samples": f"t*{int(self.photons)}",
                 "ppmrecon.fppm.cells": f"{H.N_ANNULI}x{H.N_SECTORS}"}
 
 
@@ -336,7 +360,8 @@ def _check_open_unit(name: str, value: float) -> None:
 
 def make_controller(method: str, defaults: dict[str, Any] | None = None, **params: Any) -> Controller:
     """The controller for ``method``. ``params`` are its options; ``defaults`` are
-    render-wide settings (alpha, knn) passed on to the controllers that take them."""
+    render-wide settings (alpha, knn, photons) passed on to the controllers that take
+    them."""
     try:
         cls = CONTROLLERS[method]
     except KeyError:

@@ -18,14 +18,32 @@ CPPM (Pearson's chi-squared test of uniformity, cumulative over annuli):
     X^2 = sum_c (O_c - E)^2 / E = C * sum_c O_c^2 / N - N,   E = N / C,
     C = 6 (inner annulus) or 12 (whole disc), N = sum_c O_c, df = C - 1.
 
-FPPM (one-way ANOVA F-test over the 12 cells, paper 000 Eq. 7): every photon in the
-disc is one sample for each of the n = 12 groups (its contribution psi in its own cell,
-0 in the others), so all groups share the sample count m and, with S_c = sum psi and
-Q_c = sum psi^2 per cell,
+FPPM (one-way ANOVA F-test over the 12 cells, paper 000 Eq. 7): every light path
+emitted since the radius last changed is one sample for each of the n = 12 groups (its
+contribution psi in the cell where its photon fell, 0 in the others, and 0 in every
+cell if it missed the disc; Sec. 3.2.4), so all groups share the sample count
+
+    m = t J   (Sec. 5.1: t passes since the radius last changed, J paths per pass),
+
+and, with S_c = sum psi and Q_c = sum psi^2 per cell (the zeros add nothing),
 
     SS_between = sum_c S_c^2 / m - (sum_c S_c)^2 / (n m)
     SS_within  = sum_c Q_c - sum_c S_c^2 / m
     F = (SS_between / (n - 1)) / (SS_within / (n (m - 1))),   d1 = n - 1, d2 = n (m - 1).
+
+We file each photon as one sample (the paper sums a path's photons per cell); a path
+rarely leaves two photons in one disc, and m = max(t J, N) with N the photons in the
+disc keeps the formulas valid if it does. Since N << m in a render, F tends to
+(n / (n - 1)) sum_c (S_c - S)^2 / sum_c Q_c (S = the mean S_c); for equal contributions
+that is X^2 / (n - 1), Pearson's statistic over the 12 cells, and F_c tends to
+chi^2_{n-1} quantile / (n - 1): Pearson's whole-disc test (CPPM's) at level alpha_F.
+Calibration under uniform photon density (tests/test_calibration.py): the rejection
+rate matches alpha_F from ~20 photons on; below, the statistic is discrete and its
+level wanders around alpha_F (at most ~1.3 alpha_F for a Poisson photon count, 2.6
+alpha_F for exactly 4 photons: three in one cell); heavy-tailed contributions make it
+conservative. The groups share light paths (a path is nonzero in one cell at most),
+which raises E[F] under the null by at most 1 / (1 - p / n), p = a path's chance to hit
+the disc (~1e-4 in a render; with m = N it would be 12/11, doubling the rate).
 
 Every function takes an ``ops`` bundle (numpy by default; the renderer passes Dr.Jit's),
 so the same formulas serve the vectorised controllers and the tests.
@@ -45,7 +63,7 @@ N_CELLS = N_ANNULI * N_SECTORS
 
 #: The FPPM critical-value table is exact for m <= F_TABLE_SIZE; beyond, the last entry
 #: (d2 = 12 * 4095) is used, within 0.02% of the d2 -> infinity limit and on the
-#: conservative side (F_c falls with d2).
+#: conservative side (F_c falls with d2). With m = t J that is every test once J >= 4096.
 F_TABLE_SIZE = 4096
 _SQRT3 = math.sqrt(3.0)
 
@@ -140,9 +158,13 @@ def cppm_radius(r: Any, passed: Sequence[Any], k: float, ops: ArrayOps = NUMPY_O
 def anova_f(sums: Sequence[Any], sumsqs: Sequence[Any], m: Any,
             ops: ArrayOps = NUMPY_OPS) -> Any:
     """One-way ANOVA F statistic of paper 000 Eq. 7 from per-group sums S_c and sums of
-    squares Q_c of m samples each. F = 0 where m < 2 or all samples are equal (no
-    evidence); F = inf where the within-group variation is zero but the between-group
-    one is not (all samples of each group equal, groups different)."""
+    squares Q_c of m samples each (float64: m = t J reaches 1e9 and more, where the
+    between-group term is a difference of O(1/m) values). F = 0 where m < 2 or all
+    samples are equal (no evidence); F = inf where the within-group variation is zero but
+    the between-group one is not (all samples of each group equal, groups different).
+    With m = t J that branch cannot fire by chance: Cauchy-Schwarz gives
+    sum_c S_c^2 <= N sum_c Q_c, so SS_within >= (1 - N / m) sum_c Q_c > 1e-6 sum_c Q_c
+    wherever a photon was seen (N photons, N << m)."""
     n = len(sums)
     total = sums[0]
     s2 = sums[0] * sums[0]
@@ -159,6 +181,24 @@ def anova_f(sums: Sequence[Any], sumsqs: Sequence[Any], m: Any,
     f = (ss_between / (n - 1.0)) / ops.maximum(ss_within / (n * (mm - 1.0)), 1e-300)
     f = ops.select(ss_within > tiny, f, ops.select(ss_between > tiny, math.inf, 0.0))
     return ops.select(m >= 2.0, f, 0.0)
+
+
+def fppm_samples(passes: Any, photons: int, in_disc: Any, ops: ArrayOps = NUMPY_OPS) -> Any:
+    """The ANOVA sample count m of Eq. 7: every light path emitted since the radius last
+    changed, m = t J (paper 000 Sec. 5.1; ``passes`` = t, ``photons`` = J per pass),
+    zeros included. At least ``in_disc`` (the photons filed in the cells), so that
+    SS_within stays >= 0 should a path leave several photons in one disc.
+    Pass float64 arrays: t J exceeds 2^32 in long renders."""
+    return ops.maximum(passes * float(photons), in_disc)
+
+
+def fppm_test_significance(significance: float, channels: int) -> float:
+    """The level of each channel's F-test so that a pixel, which shrinks if any of its
+    ``channels`` tests rejects, does so with probability at most ``significance`` under
+    the null (Bonferroni): significance / channels. Luminance: the level itself. With
+    RGB the per-pixel rate lies between significance / 3 (white light: the channels are
+    proportional and F is the same in each) and ~significance (independent channels)."""
+    return significance / channels
 
 
 def f_critical_table(significance: float, n_groups: int = N_CELLS,
