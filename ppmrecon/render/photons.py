@@ -94,8 +94,10 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
     """Trace up to ``bounces`` bounces of every alive path, storing the photon of bounce
     d = depth0 + step in slot ``step * lanes + lane``. Stops a path after bounce index
     ``last_depth`` (the last one that may be stored). Returns (alive, went non-finite)."""
-    lanes = dr.width(alive)
-    lane = dr.arange(mi.UInt32, lanes)
+    # Opaque: the number of surviving paths changes every segment and pass, and a
+    # literal would compile a new kernel each time.
+    lanes = dr.opaque(mi.UInt32, dr.width(alive))
+    lane = dr.arange(mi.UInt32, dr.width(alive))
     ray, beta, rng = paths.ray, paths.beta, paths.rng
     step = mi.UInt32(0)
     bad = mi.Bool(False)
@@ -137,11 +139,15 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
 
 
 def _concat(arrays: list) -> object:
-    """Concatenate 1D arrays or 3-vectors of them (``dr.concat`` takes flat arrays only)."""
-    first = arrays[0]
-    if dr.depth_v(first) == 1:
-        return dr.concat(arrays)
-    return type(first)(*(dr.concat([a[i] for a in arrays]) for i in range(len(first))))
+    """Concatenate arrays of one type by scatters at opaque offsets: one kernel whatever
+    the number of segments or their sizes (``dr.concat`` bakes both into its kernel)."""
+    out = dr.zeros(type(arrays[0]), sum(dr.width(a) for a in arrays))
+    offset = 0
+    for a in arrays:
+        n = dr.width(a)
+        dr.scatter(out, a, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, offset))
+        offset += n
+    return out
 
 
 def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
@@ -171,7 +177,7 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
         if dr.width(index):
             chunks.append((dr.gather(mi.Point3f, buf_p, index), dr.gather(mi.Vector3f, buf_d, index),
                            dr.gather(mi.Normal3f, buf_n, index), dr.gather(mi.Color3f, buf_phi, index),
-                           mi.UInt32(index // lanes + depth0)))
+                           index // dr.opaque(mi.UInt32, lanes) + dr.opaque(mi.UInt32, depth0)))
         depth0 += bounces
         survivors = dr.compress(alive)
         if dr.width(survivors) == 0:
