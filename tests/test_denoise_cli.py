@@ -176,7 +176,33 @@ def test_init_checkpoint_presets_and_features(tmp_path, capsys):
     assert model.preset.name == "small" and model.features.n_channels == 33 and meta["trained"] is False
     assert main(["--init-checkpoint", str(tmp_path / "x.pt"), "--preset", "huge"]) == 2
     assert "unknown model preset 'huge'" in one_line_error(capsys)
+    guarded = tmp_path / "guarded.pt"
+    assert main(["--init-checkpoint", str(guarded), "--scale-free-features", "--outlier-features",
+                 "--guard", "on", "--quiet"]) == 0
+    model, _ = C.load_checkpoint(guarded)
+    assert model.guard.enabled and model.features.scale_free and model.features.n_channels == 30
 
+
+def test_guard_flag_overrides_the_checkpoint(model, tmp_path):
+    """--guard model/off/on on a one-pass 1e8 firefly in all five inputs at (5, 5)."""
+    buffer_path = tmp_path / "firefly.exr"
+    buf = make_buffer(21, 34, seed=11)
+    buf.estimates[:, 5, 5] = 1e8
+    buf.variances[:, 5, 5] = 1e16                  # one pass made it: sqrt(V) ~ X
+    B.write_buffers(buffer_path, buf)
+    guarded = tmp_path / "guarded.pt"
+    assert main(["--init-checkpoint", str(guarded), "--guard", "on", "--quiet"]) == 0
+    peak = {}
+    for ckpt, choice in ((guarded, "model"), (guarded, "off"), (model, "model"), (model, "on")):
+        out = tmp_path / f"{ckpt.stem}_{choice}.exr"
+        assert main([str(buffer_path), "--model", str(ckpt), "-o", str(out), "--guard", choice,
+                     "--quiet", "--threads", "1"]) == 0
+        rgb, header = B.read_rgb(out)
+        peak[ckpt.stem, choice] = float(rgb[5, 5].max())
+        on = choice == "on" or (choice == "model" and ckpt == guarded)
+        assert header["ppmrecon.guard"] == ("on" if on else "off")
+    assert peak["guarded", "off"] > 1e7 and peak["tiny", "model"] > 1e7       # straight through
+    assert peak["guarded", "model"] < 10 and peak["tiny", "on"] < 10
 
 def test_console_script_is_installed(tmp_path):
     exe = shutil.which("ppmrecon-denoise", path=str(Path(sys.executable).parent))

@@ -374,14 +374,15 @@ def test_images_smaller_than_the_window(h, w):
     assert out.rgb.max() <= y.max() + z.max() - z.min() + 1e-5
 
 
-@pytest.mark.parametrize("config", [FeatureConfig(), FeatureConfig(radius=True, passes=True)])
+@pytest.mark.parametrize("config", [FeatureConfig(), FeatureConfig(radius=True, passes=True),
+                                    FeatureConfig(scale_free=True, outliers=True)])
 def test_cropped_features_equal_the_crop_of_whole_image_features(config):
     from ppmrecon.model.features import buffer_scales
 
     buf = make_buffer(17, 23, seed=13)
     whole = from_buffer(buf, config)
     rows, cols = slice(3, 11), slice(15, 23)
-    part = from_buffer(buf, config, (rows, cols), buffer_scales(buf))
+    part = from_buffer(buf, config, (rows, cols), buffer_scales(buf, config))
     for a, b in zip(part, whole):
         torch.testing.assert_close(a, b[..., rows, cols], rtol=0, atol=0)
     alone = from_buffer(buf, config, (rows, cols))        # scales default to the whole buffer's too

@@ -8,6 +8,8 @@ A checkpoint is a ``torch.save`` dict of plain types and tensors only, so it loa
     schema_version  the buffer-file schema the features were built from (buffers.SCHEMA_VERSION)
     preset          the full architecture (Preset.to_dict())
     features        the feature settings (FeatureConfig.to_dict())
+    guard           the firefly guard settings (GuardConfig.to_dict()); absent before
+                    format 2, read as the guard off (those models never saw it)
     state_dict      the weights
     meta            free-form training information (epochs, validation relMSE, ...)
 
@@ -28,10 +30,12 @@ from ..buffers import SCHEMA_VERSION
 from ..errors import UsageError
 from ..fileio import atomic_write
 from .features import FeatureConfig
+from .guard import GuardConfig
 from .kpn import DEFAULT_PRESET, KPN, Preset, build
 
 FORMAT = "ppmrecon-kpn"
-FORMAT_VERSION = 1
+#: 2: adds "guard" (an older ppmrecon must not run a guard-trained model without it)
+FORMAT_VERSION = 2
 #: A shipped default model is picked up from here when it exists.
 DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default.pt"
 _ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
@@ -51,6 +55,7 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
         "schema_version": SCHEMA_VERSION,
         "preset": model.preset.to_dict(),
         "features": model.features.to_dict(),
+        "guard": model.guard.to_dict(),
         "state_dict": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
         "meta": dict(meta or {}),
     }
@@ -58,10 +63,11 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
 
 
 def init_checkpoint(path: str | os.PathLike, preset: Preset | str = DEFAULT_PRESET,
-                    features: FeatureConfig = FeatureConfig(), seed: int = 0) -> KPN:
+                    features: FeatureConfig = FeatureConfig(), seed: int = 0,
+                    guard: GuardConfig = GuardConfig()) -> KPN:
     """Write a freshly initialised (untrained) model to ``path`` and return it."""
     torch.manual_seed(seed)
-    model = build(preset, features)
+    model = build(preset, features, guard)
     save_checkpoint(path, model, {"trained": False, "seed": seed})
     return model
 
@@ -103,12 +109,16 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     for key, kind in (("preset", dict), ("features", dict), ("state_dict", dict)):
         if not isinstance(data.get(key), kind):
             raise fail(f"checkpoint lacks '{key}'")
+    guard_data = data.get("guard", {})
+    if not isinstance(guard_data, dict):
+        raise fail("checkpoint has an unreadable 'guard'")
     try:
         preset = Preset.from_dict(data["preset"])
         features = FeatureConfig.from_dict(data["features"])
+        guard = GuardConfig.from_dict(guard_data)
     except (TypeError, ValueError) as exc:
         raise fail(f"invalid architecture in checkpoint ({exc})") from None
-    model = KPN(preset, features)
+    model = KPN(preset, features, guard)
     try:
         model.load_state_dict(data["state_dict"], strict=True)
     except RuntimeError as exc:

@@ -1,7 +1,8 @@
 """``ppmrecon-denoise``: buffer file -> consistent learned reconstruction (paper 002 Eq. 6).
 
     ppmrecon-denoise INPUT.exr [--model CKPT] [--output OUT.exr] [--tile N]
-                     [--weights-layers] [--device cpu|cuda] [--threads N] [--quiet]
+                     [--weights-layers] [--device cpu|cuda] [--threads N]
+                     [--guard model|on|off] [--quiet]
     ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
 
 The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
@@ -9,7 +10,8 @@ written atomically; ``--weights-layers`` adds ``weight.z1 .. weight.z4``, the su
 combination weight of each ~z^j (paper 002 Fig. 6). Without ``--model`` the shipped
 default model is used if the package has one (``ppmrecon/data/models/default.pt``).
 ``--init-checkpoint`` writes an untrained network, for trying the pipeline end to end
-before a model has been trained.
+before a model has been trained. ``--guard`` switches the consistent firefly guard
+(:mod:`ppmrecon.model.guard`) on or off; by default it is what the checkpoint says.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from ..cli_common import ArgumentParser, Progress, positive_int, run_main
 from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
+from .guard import DEFAULT_ON, GuardConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -35,6 +38,7 @@ WEIGHT_LAYER = "weight"
 H_DENOISER = "ppmrecon.denoiser"
 H_MODEL = "ppmrecon.model"
 H_DENOISE_SECONDS = "ppmrecon.denoise_seconds"
+H_GUARD = "ppmrecon.guard"
 
 NO_MODEL_HINT = ("no model given and no default model is installed; pass --model CKPT "
                  "(train one with `ppmrecon-train`, or make an untrained one with "
@@ -66,6 +70,11 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
                    help="network precision; auto = bfloat16 on CPUs with native bf16 (AMX/AVX512-BF16), "
                         "else float32. The combiner is always float32")
+    p.add_argument("--guard", choices=("model", "on", "off"), default="model",
+                   help="consistent firefly guard: replace statistical outliers of each input by "
+                        "their 3x3 median and keep the output within its five inputs; 'model' "
+                        "(default) = as the checkpoint was trained; with --init-checkpoint, "
+                        "'on' stores it in the new model")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     g = p.add_argument_group("making an untrained model")
     g.add_argument("--init-checkpoint", metavar="CKPT",
@@ -76,6 +85,10 @@ def build_parser() -> ArgumentParser:
     g.add_argument("--seed", type=int, default=0, help="initialisation seed (default: 0)")
     g.add_argument("--radius-features", action="store_true", help="network also sees the 5 bandwidths")
     g.add_argument("--pass-feature", action="store_true", help="network also sees the pass count")
+    g.add_argument("--scale-free-features", action="store_true",
+                   help="radiance over the image's scale and relative variances (unit-free inputs)")
+    g.add_argument("--outlier-features", action="store_true",
+                   help="network also sees how the five estimates disagree (6 channels)")
     return p
 
 
@@ -84,9 +97,21 @@ def default_output(path: Path) -> Path:
     return path.with_name(f"{path.stem}_denoised.exr")
 
 
+def guard_choice(choice: str, model_guard: GuardConfig) -> GuardConfig:
+    """The guard to run with: the model's (``model``), on (the model's settings if it has
+    them, else :data:`.guard.DEFAULT_ON`) or off."""
+    if choice == "off":
+        return GuardConfig()
+    if choice == "on":
+        return model_guard if model_guard.enabled else DEFAULT_ON
+    return model_guard
+
+
 def _init_checkpoint(args) -> int:
-    features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature)
-    model = checkpoint.init_checkpoint(args.init_checkpoint, load_preset(args.preset), features, seed=args.seed)
+    features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature,
+                             scale_free=args.scale_free_features, outliers=args.outlier_features)
+    model = checkpoint.init_checkpoint(args.init_checkpoint, load_preset(args.preset), features, seed=args.seed,
+                                       guard=guard_choice(args.guard, GuardConfig()))
     if not args.quiet:
         print(f"{args.init_checkpoint}: untrained '{model.preset.name}' model, "
               f"{parameter_count(model):,} parameters, {features.n_channels} input channels")
@@ -135,9 +160,11 @@ def _main(argv: Sequence[str] | None = None) -> int:
         progress.total = total
         progress.update(done, force=done == total)
 
+    guard = guard_choice(args.guard, model.guard)
     start = time.perf_counter()
     try:
-        result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision)
+        result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision,
+                         guard=guard)
     finally:
         progress.close()
     seconds = time.perf_counter() - start
@@ -146,7 +173,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     if args.weights_layers:
         extra = {f"{WEIGHT_LAYER}.{name}": result.weights_per_z[j] for j, name in enumerate(ESTIMATES[1:])}
     header = dict(buf.header)
-    header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4)})
+    header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
+                   H_GUARD: "on" if guard.enabled else "off"})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape

@@ -3,8 +3,11 @@
 The estimator is ``yhat_c = sum_j sum_{i in Omega_c} w^j_{c,i} (~y_i + ~z^j_c - ~z^j_i)``
 with the weights predicted by the network (see :mod:`ppmrecon.model.combine`).
 
-The output is that combination clamped at 0 (radiance is nonnegative; see the note in
-:func:`_denoise`). The image is processed in square tiles. Each tile is extended by a halo of
+With the model's firefly guard (:mod:`.guard`; on when its checkpoint says so, or when
+asked), the inputs are guarded first, on the whole image, and each tile's combination is
+clamped into the band of its five inputs; without it, the combination is clamped at 0
+(radiance is nonnegative). Both keep the result consistent. The image is processed
+in square tiles. Each tile is extended by a halo of
 ``receptive radius + K//2`` pixels (clipped at the image border), so the logits and the
 window of every kept pixel see exactly what they would see on the whole image: tiled
 and untiled results agree up to floating-point rounding. Tiling bounds the memory of
@@ -24,6 +27,7 @@ from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
+from .guard import GuardConfig, guard_buffer, output_band
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -94,18 +98,26 @@ InputSource = Callable[[slice, slice], ModelInputs]
 
 def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
                    device: str | torch.device = "cpu", progress: ProgressFn | None = None,
-                   precision: str = "auto", workers: int | None = None) -> Denoised:
-    """Run network + combiner over prepared :class:`ModelInputs` (batch of one)."""
+                   precision: str = "auto", workers: int | None = None,
+                   guard: GuardConfig | None = None) -> Denoised:
+    """Run network + combiner over prepared :class:`ModelInputs` (batch of one).
+
+    The inputs are taken as they are: guarding them is the caller's (training data
+    are guarded when loaded); only the output band of ``guard`` (default: the model's)
+    is applied here.
+    """
     def source(rows: slice, cols: slice) -> ModelInputs:
         return ModelInputs(*(t[..., rows, cols] for t in inputs))
 
     _, _, height, width = inputs.y.shape
-    return _denoise(source, height, width, model, tile, device, progress, precision, workers)
+    guard = model.guard if guard is None else guard
+    return _denoise(source, height, width, model, tile, device, progress, precision, workers,
+                    guard.band if guard.enabled else 0.0)
 
 
 def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
             progress: ProgressFn | None = None, precision: str = "auto",
-            workers: int | None = None) -> Denoised:
+            workers: int | None = None, guard: GuardConfig | None = None) -> Denoised:
     """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
 
     ``tile=None`` picks the tile size (:func:`auto_tile`); a tile at least as large as
@@ -113,21 +125,26 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     ``precision`` (``auto``, ``float32``, ``bfloat16``; see :func:`resolve_precision`)
     applies to the network only (see :meth:`KPN.predict`). Features are
     computed per tile (with the whole image's normalisers), so no full-resolution
-    feature tensor is ever held.
+    feature tensor is ever held. ``guard`` overrides the model's firefly guard
+    (:attr:`KPN.guard`); the guard is consistent, so switching it on never changes
+    what the result converges to.
     """
-    scales = buffer_scales(buf)
+    guard = model.guard if guard is None else guard
+    buf = guard_buffer(buf, guard)                      # whole image: medians need no halo
+    scales = buffer_scales(buf, model.features)
     from_buffer(buf, model.features, (slice(0, 1), slice(0, 1)), scales)   # header problems fail early
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales)
 
     height, width = buf.shape
-    return _denoise(source, height, width, model, tile, device, progress, precision, workers)
+    return _denoise(source, height, width, model, tile, device, progress, precision, workers,
+                    guard.band if guard.enabled else 0.0)
 
 
 def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int | None,
              device: str | torch.device, progress: ProgressFn | None, precision: str,
-             workers: int | None) -> Denoised:
+             workers: int | None, band: float) -> Denoised:
     """The tile loop. On the CPU, ``workers`` threads (default: torch's thread count)
     denoise tiles side by side, each op single-threaded; on a GPU, one tile at a time."""
     device = torch.device(device)
@@ -149,13 +166,19 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
         with torch.no_grad():                     # grad mode is per thread
             inp = source(slice(ya, yb), slice(xa, xb))
             logits = model.predict(inp.features.to(device), precision)
+            y, z = inp.y.to(device), inp.z.to(device)
             try:
-                out = combine_with_weights(inp.y.to(device), inp.z.to(device), logits, method="loop")
+                out = combine_with_weights(y, z, logits, method="loop")
             except NonFiniteLogitsError:
                 raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
                                            "or does not fit this input") from None
+            # Terms y_i + z_c - z_i can be negative, so can their convex combination. Radiance
+            # is not: projecting onto [0, inf) never moves the estimate away from a
+            # nonnegative truth; the guard's band stays within Appendix A's bounds
+            # (guard.output_band). Either way the result stays consistent.
+            image = output_band(out.image, y, z, band)
         keep = (slice(None), slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
-        rgb[:, y0:y1, x0:x1] = out.image[0][keep].cpu()           # tiles are disjoint: no lock needed
+        rgb[:, y0:y1, x0:x1] = image[0][keep].cpu()                # tiles are disjoint: no lock needed
         weights[:, y0:y1, x0:x1] = out.weights_per_z[0][keep].cpu()
 
     def report(done: int) -> None:
@@ -180,8 +203,4 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
                 raise
     if not torch.isfinite(rgb).all():
         raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
-    # Terms y_i + z_c - z_i can be negative, so can their convex combination. Radiance is
-    # not: projecting onto [0, inf) never moves the estimate away from a nonnegative
-    # truth, so the result stays consistent (and Eq. 8 clips the same way in training).
-    rgb.clamp_(min=0.0)
     return Denoised(rgb.permute(1, 2, 0).contiguous().numpy(), weights.numpy())

@@ -25,6 +25,7 @@ import torch.nn as nn
 from ..errors import UsageError
 from .combine import logit_channels
 from .features import FeatureConfig
+from .guard import GuardConfig
 
 PACKAGE_MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
 REPO_MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
@@ -103,12 +104,18 @@ def load_preset(name_or_path: str | os.PathLike) -> Preset:
 
 
 class KPN(nn.Module):
-    """Features (B, C, H, W) -> combination logits (B, 4 K^2, H, W) (paper 002 Fig. 4)."""
+    """Features (B, C, H, W) -> combination logits (B, 4 K^2, H, W) (paper 002 Fig. 4).
 
-    def __init__(self, preset: Preset, features: FeatureConfig = FeatureConfig()):
+    ``guard`` is not part of the network: it is the firefly guard (:mod:`.guard`) the
+    model was trained with, kept here so that it travels with the checkpoint.
+    """
+
+    def __init__(self, preset: Preset, features: FeatureConfig = FeatureConfig(),
+                 guard: GuardConfig = GuardConfig()):
         super().__init__()
         self.preset = preset
         self.features = features
+        self.guard = guard
         body: list[nn.Module] = []
         channels = features.n_channels
         for _ in range(preset.layers - 1):
@@ -166,8 +173,9 @@ def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def build(preset: Preset | str, features: FeatureConfig = FeatureConfig()) -> KPN:
+def build(preset: Preset | str, features: FeatureConfig = FeatureConfig(),
+          guard: GuardConfig = GuardConfig()) -> KPN:
     """A freshly initialised network for a preset (name, path or :class:`Preset`)."""
     if not isinstance(preset, Preset):
         preset = load_preset(preset)
-    return KPN(preset, features)
+    return KPN(preset, features, guard)

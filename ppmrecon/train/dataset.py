@@ -1,9 +1,12 @@
 """Training and validation samples from a generated data set, and 64x64 patch batches.
 
-Every input buffer file of a scene is paired with that scene's reference. Network
-features are computed on the whole image (their per-image normalisations must not see
-a crop), then patches are cut and augmented with one of the eight flips/rotations,
-identically for every layer (normals turn with the image, see :mod:`.augment`).
+Every input buffer file of a scene is paired with that scene's reference. With the
+firefly guard on, each buffer file is guarded first (:func:`..model.guard.guard_buffer`,
+the same call inference makes), so ~y, ~z and the features are what the model will see
+when it denoises. Network features are computed on the whole image (their per-image
+normalisations must not see a crop), then patches are cut and augmented with one of the
+eight flips/rotations, identically for every layer (normals turn with the image, see
+:mod:`.augment`).
 
 A missing, corrupt or partial item (an unreadable EXR, NaN/Inf, a size that differs
 from the reference, a scene without reference, inputs the manifest promised but that
@@ -23,6 +26,7 @@ import torch
 from .. import buffers as B
 from ..errors import PpmreconError, UsageError
 from ..model.features import FeatureConfig, from_buffer
+from ..model.guard import GuardConfig, guard_buffer
 from .augment import transform_image, transform_normals
 from .datagen import REFERENCE, input_name, load_manifest
 
@@ -37,13 +41,14 @@ class Sample:
     scene: str
     passes: int
     features: torch.Tensor   # (C, H, W)
-    y: torch.Tensor          # (3, H, W)
-    z: torch.Tensor          # (4, 3, H, W)
+    y: torch.Tensor          # (3, H, W) ~y (guarded when the guard is on)
+    z: torch.Tensor          # (4, 3, H, W) ~z^1..~z^4 (likewise)
     reference: torch.Tensor  # (3, H, W)
 
 
 def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = FeatureConfig(),
-               passes: int | None = None, warn: Warn | None = None) -> list[Sample]:
+               passes: int | None = None, warn: Warn | None = None,
+               guard: GuardConfig = GuardConfig()) -> list[Sample]:
     """All usable samples of ``split`` ("train" or "val"), optionally of one pass count."""
     root = Path(root)
     warn = warn or (lambda msg: None)
@@ -76,7 +81,11 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
             if buf.shape != tuple(ref_np.shape[:2]):
                 warn(f"skipping {path}: size {buf.shape} differs from the reference {ref_np.shape[:2]}")
                 continue
-            inputs = from_buffer(buf, features)
+            try:
+                inputs = from_buffer(guard_buffer(buf, guard), features)
+            except PpmreconError as exc:   # e.g. no pass count in the header
+                warn(f"skipping {path}: {exc}")
+                continue
             samples.append(Sample(str(path), scene["id"], int(entry.get("passes", 0)),
                                   inputs.features[0], inputs.y[0], inputs.z[0], reference))
     return samples

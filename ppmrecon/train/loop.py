@@ -2,7 +2,10 @@
 002 Sec. 4.3, Eq. 8), a checkpoint and a validation pass every epoch, resumable.
 
 Per step: B random 64x64 patches -> network logits -> consistent combiner (Eq. 6) ->
-loss against the reference. Per epoch: full-image validation relMSE (SPEC section 7) of
+[the firefly guard's output band] -> loss against the reference. With ``guard`` on in
+the config, the data are guarded when loaded and the guard is stored in every
+checkpoint, so the model is trained on what ``ppmrecon-denoise`` feeds it.
+Per epoch: full-image validation relMSE (SPEC section 7) of
 the output and of every single input (~y, ~z^1..~z^4) on held-out scenes, a checkpoint
 (``model.pt``, loadable by ``ppmrecon-denoise``), the best one so far (``best.pt``), the
 optimiser state (``train_state.pt``) and ``history.json``.
@@ -28,9 +31,9 @@ from ..fileio import load_json_config, write_json
 from ..metrics import relmse
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
-from ..model.features import FeatureConfig
+from ..model.features import FeatureConfig, ModelInputs
+from ..model.guard import GuardConfig, output_band
 from ..model.infer import denoise_inputs
-from ..model.features import ModelInputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
 from .loss import relative_log_l1
@@ -47,6 +50,8 @@ class TrainConfig:
 
     preset: str = "tiny"
     features: dict[str, bool] = field(default_factory=dict)
+    #: firefly guard settings (GuardConfig fields; {} = off, {"enabled": true} = the defaults)
+    guard: dict[str, Any] = field(default_factory=dict)
     lr: float = 1e-4
     batch: int = 8
     patch: int = 64
@@ -91,16 +96,20 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     dev = torch.device(device)
-    features = FeatureConfig.from_dict(cfg.features)
+    try:
+        features = FeatureConfig.from_dict(cfg.features)
+        guard = GuardConfig.from_dict(cfg.guard)
+    except (TypeError, ValueError) as exc:
+        raise UsageError(f"training config: {exc}") from None
     torch.manual_seed(cfg.seed)
-    train_samples = load_split(data, "train", features, warn=warn)
+    train_samples = load_split(data, "train", features, warn=warn, guard=guard)
     config = json.loads((Path(data) / "manifest.json").read_text()).get("config", {})
     passes = sorted(config.get("input_passes", []))
     val_passes = cfg.val_passes or (passes[len(passes) // 2] if passes else None)
-    val_samples = load_split(data, "val", features, passes=val_passes, warn=warn)
+    val_samples = load_split(data, "val", features, passes=val_passes, warn=warn, guard=guard)
     sampler = PatchSampler(train_samples, cfg.patch, features, augment=True, seed=cfg.seed)
 
-    model = build(cfg.preset, features).to(dev)
+    model = build(cfg.preset, features, guard).to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     history: list[dict[str, Any]] = []
     start_epoch = 0
@@ -129,7 +138,10 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
         for step in range(cfg.steps_per_epoch):
             feats, y, z, ref = (t.to(dev) for t in sampler.batch(cfg.batch))
             logits = model(feats)
-            loss = relative_log_l1(combine(y, z, logits, method="unfold"), ref)
+            pred = combine(y, z, logits, method="unfold")
+            if guard.enabled:     # the band inference applies (Eq. 8 clips at 0 itself)
+                pred = output_band(pred, y, z, guard.band)
+            loss = relative_log_l1(pred, ref)
             if not torch.isfinite(loss):
                 raise UsageError(f"epoch {epoch + 1} step {step + 1}: the loss became {loss.item()}; "
                                  "lower --lr or check the data set")

@@ -1,0 +1,325 @@
+"""A consistent firefly guard around the combiner of paper 002 (Eq. 6; issue 12).
+
+Two failure modes of Eq. 6, ``yhat_c = sum_{j,i} w^j_{c,i} (~y_i + ~z^j_c - ~z^j_i)``:
+
+* a firefly at pixel c present in ~y_c and in every ~z^j_c (a hit point that saw the light
+  through a rare specular chain, a photon shared by both gathers) is in *every* term at c
+  (the i = c term is ~y_c, the others carry ~z^j_c), so no weights can remove it;
+* a firefly at a neighbour's ~z^j_i drives the terms ``... - ~z^j_i`` of pixel c far below 0
+  ("black dots" once the output is clamped at 0); one in ~y_i pushes them far above.
+
+What the guard does
+-------------------
+1. **Input guard** (a switching median filter, per estimate X in {~y, ~z^1..~z^4}): with
+   ``Xbar`` the RGB mean, ``M`` the median of ``Xbar`` over the 3 x 3 window of the same
+   estimate, ``V`` its Welford variance of the mean (buffer layer ``*.V``) and N passes,
+   pixel c of X is an outlier when
+
+       Xbar_c > g(N) (M_c + eps)    and    sqrt(V_c) >= r0 Xbar_c,
+       g(N) = g0 N^p,   eps = floor * s   (s: the image's radiance scale, :func:`image_scale`)
+
+   and its R,G,B (and V, which only the network sees) are replaced by their 3 x 3
+   medians in that estimate. The variance test keeps genuinely bright, steady pixels
+   (a small light seen directly): a mean made by one pass has sqrt(V)/Xbar ~ 1, one made
+   by k comparable passes ~ 1/sqrt(k), a steady pixel after N passes ~ 1/sqrt(N).
+2. **Output band**: the combined value is clamped, per channel, into
+   ``[min_k Xhat_{k,c} / h, max_k Xhat_{k,c} * h]`` over the five guarded inputs at c
+   (h >= 1); this replaces the old clamp at 0 (the band's floor is >= 0) and removes
+   black dots: no pixel can fall below all five of its own estimates.
+
+Why the result stays consistent (paper 002 Eq. 7, Appendix A)
+---------------------------------------------------------------
+Let the inputs converge, X_{k,c}(N) -> x_c (finite) for every k and c, as N -> inf.
+
+* Input guard: ``g(N) -> inf`` and ``eps(N) -> floor * s(x) > 0`` whenever the truth is
+  not all black (s is a mean of the five estimates' per-pixel median, which converges
+  to that of x). Then ``g(N)(M_c + eps) -> inf`` while ``Xbar_c -> x_c`` stays finite,
+  so after some N_c the outlier test is false at c and ``Xhat_c = X_c`` exactly: the
+  guard is eventually the identity, pixel by pixel (an all-black truth is converged
+  to by any replacement too: medians of values that -> 0 go to 0). The variance test
+  can only switch replacements off, so it cannot break this. The replacement value
+  does not matter for the limit, which is why it can be the local median (a value
+  that removes the firefly) instead of the threshold.
+* Combiner: Eq. 6 on the guarded inputs is a convex combination of terms
+  ``Xhat-y_i + Xhat-z^j_c - Xhat-z^j_i`` that each converge to x_c, so it converges to
+  x_c whatever the weights (Appendix A).
+* Band: the term with i = c is ``~y_c`` itself, and ``min_k Xhat_{k,c} / h <= ~y_c <=
+  max_k Xhat_{k,c} * h`` (radiance >= 0, h >= 1), so the band always overlaps the
+  interval [smallest term, largest term] of Appendix A; clamping a point of that interval
+  into the band keeps it inside the interval (up to float rounding). The banded output
+  is therefore still between the smallest and largest term and converges to x_c by
+  Eq. 10-12. (The band's ends also converge, to x_c / h and x_c h.) No growth of h is
+  needed; h = 1 confines the output to the range of its own five estimates.
+
+Constants (the ``GuardConfig`` defaults), measured with the shipped model on the built-in
+``water_caustic`` and ``cornell_caustics`` at 128 px, 65536 photons, N = 16, 64, 256
+(and a second seed at 64), against 1024-pass single-bandwidth references:
+
+* ``g(N) = 16 sqrt(N)`` (g = 64, 128, 256 at N = 16, 64, 256). Those renders have
+  no catastrophic outliers; their largest are water sparkles (the light seen through
+  the surface in one pass: 55 at N = 16, 14 at N = 64, 78-180 and 25-50 x the local
+  median) whose truth is 1-16 x that median. g0 = 16 replaces the 13 worst (N = 16):
+  plain and trimmed relMSE -3%, 8x8-block relMSE +0.5%; g0 = 8 also touches
+  ``cornell_caustics`` N = 16 (trimmed +1.4%) and water N = 64; g0 = 2-4 removes the
+  N = 64 sparkles and real energy with them (block relMSE +50%). So 16 is the most
+  aggressive power of two that costs no metric more than 1% on those renders, while
+  issue 12's example (1750 x the truth at N = 64) and the synthetic 1e3..1e5 x of
+  ``tests/test_fireflies.py`` are far above it. ``sqrt(N)``: one pass of value E adds
+  E / N to the mean, so caught events need E > g0 N^1.5 x the local median: the guard
+  fades out as more passes average such events in.
+* ``r0 = 0.5`` (a mean made by at most ~4 comparable passes): with an aggressive g,
+  ``r0 = 0`` tripled the block error of ``cornell_caustics`` N = 16 (steady caustic
+  peaks replaced), 0.5 kept it; 0.7 misses two-pass events (sqrt(V)/Xbar = 0.71).
+* ``h = 1``: lower trimmed and block relMSE on all seven renders than h = 1.25, 2 or no
+  band, lower plain relMSE on six (the seventh, water at N = 256, loses one pixel
+  where all five inputs carry a sparkle and the unbanded output happened to be 0).
+* ``floor = 1e-3``: radiance below 0.1% of the image's scale counts as black.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, Mapping, NamedTuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..buffers import H_PASSES, BufferFile
+from ..errors import UsageError
+
+#: eps = RELATIVE_FLOOR x the image's radiance scale: the smallest radiance the guard and
+#: the scale-free features tell apart from black (a relative, not absolute, floor).
+RELATIVE_FLOOR = 1e-3
+#: Winsorising quantile of :func:`image_scale` (a 0.1% tail of fireflies cannot set it).
+SCALE_QUANTILE = 0.999
+
+
+# ------------------------------------------------------------------ robust statistics
+
+def _sort(p: list[torch.Tensor], network: tuple[tuple[int, int], ...]) -> None:
+    for i, j in network:
+        p[i], p[j] = torch.minimum(p[i], p[j]), torch.maximum(p[i], p[j])
+
+
+# Median selection networks (Paeth; Devillard's opt_med5 / opt_med9): 7 and 19 exchanges.
+_MED5 = ((0, 1), (3, 4), (0, 3), (1, 4), (1, 2), (2, 3), (1, 2))
+_MED9 = ((1, 2), (4, 5), (7, 8), (0, 1), (3, 4), (6, 7), (1, 2), (4, 5), (7, 8), (0, 3), (5, 8),
+         (4, 7), (3, 6), (1, 4), (2, 5), (4, 7), (4, 2), (6, 4), (4, 2))
+
+
+def _shifted(x: torch.Tensor) -> list[torch.Tensor]:
+    """The 9 views x[r + dr, c + dc] (replicate padding) of (..., H, W), row-major."""
+    h, w = x.shape[-2:]
+    pad = F.pad(x.reshape(-1, 1, h, w), (1, 1, 1, 1), mode="replicate").reshape(*x.shape[:-2], h + 2, w + 2)
+    return [pad[..., r:r + h, c:c + w] for r in range(3) for c in range(3)]
+
+
+def median3x3(x: torch.Tensor) -> torch.Tensor:
+    """Median over the 3 x 3 window of each pixel (replicate padding), any leading dims.
+
+    A selection network on 9 shifted views: O(H W) temporaries, no 9-fold copy.
+    """
+    p = _shifted(x)
+    _sort(p, _MED9)
+    return p[4].contiguous()
+
+
+def local_floor(x: torch.Tensor) -> torch.Tensor:
+    """A robust local level in 6 operations instead of the median's 38: the smallest of
+    the three row medians of the 3 x 3 window (replicate padding). A lone spike moves no
+    row median; it is a lower bound of :func:`median3x3` (each row has at most one value
+    below its median, so at most three of the nine lie below the smallest row median)."""
+    p = _shifted(x)
+    rows = [torch.maximum(torch.minimum(a, b), torch.minimum(torch.maximum(a, b), c))
+            for a, b, c in (p[0:3], p[3:6], p[6:9])]
+    return torch.minimum(torch.minimum(rows[0], rows[1]), rows[2])
+
+
+def median_of_estimates(lum: torch.Tensor) -> torch.Tensor:
+    """Per-pixel median of the five estimates, (B, 5, H, W) -> (B, H, W)."""
+    p = list(lum.unbind(1))
+    _sort(p, _MED5)
+    return p[2]
+
+
+def image_scale(estimates: torch.Tensor) -> torch.Tensor:
+    """Radiance scale of whole images, (B,), from estimates (B, 5, 3, H, W).
+
+    The mean over pixels of the median of the five estimates' RGB means, winsorised at
+    its :data:`SCALE_QUANTILE` quantile: a firefly in up to two estimates does not enter
+    the per-pixel median, one in all five is cut by the winsorising. Falls back to the
+    plain mean where that is 0 (a few bright pixels on black), and to 1 for an all-black
+    image. Converges to the same statistic of the truth as the inputs converge.
+    """
+    return _scale_of(estimates.mean(2))
+
+
+def _scale_of(lum: torch.Tensor) -> torch.Tensor:
+    med = median_of_estimates(lum).flatten(1)                          # (B, H W)
+    n = med.shape[1]
+    top = n - min(n, max(1, math.ceil(SCALE_QUANTILE * n))) + 1        # values at or above the quantile
+    q = med.topk(top, dim=1, sorted=False).values.amin(1, keepdim=True)
+    wins = torch.minimum(med, q).mean(1)
+    plain = med.mean(1)
+    return torch.where(wins > 0, wins, torch.where(plain > 0, plain, torch.ones_like(plain)))
+
+
+# ---------------------------------------------------------------------------- config
+
+@dataclass(frozen=True)
+class GuardConfig:
+    """Firefly guard settings; travel inside the checkpoint (``"guard"``)."""
+
+    enabled: bool = False
+    threshold: float = 16.0       # g0 in g(N) = g0 N^growth: outlier = g(N) x local median
+    growth: float = 0.5           # p: g(N) -> inf, so the guard is eventually the identity
+    min_rel_error: float = 0.5    # r0: only pixels with sqrt(V)/Xbar >= r0 can be outliers
+    band: float = 1.0             # h >= 1: output within [min_k Xhat / h, max_k Xhat * h]; 0 = no band
+    floor: float = RELATIVE_FLOOR  # eps = floor x image_scale
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.enabled, bool):
+            raise ValueError(f"guard setting 'enabled' must be true or false, got {self.enabled!r}")
+        for key in ("threshold", "growth", "min_rel_error", "band", "floor"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"guard setting '{key}' must be a finite number, got {value!r}")
+        if self.threshold <= 0 or self.growth <= 0 or self.floor <= 0 or self.min_rel_error < 0:
+            raise ValueError("guard settings threshold, growth and floor must be > 0, min_rel_error >= 0 "
+                             "(growth > 0 is what makes the guard consistent)")
+        if self.band != 0 and self.band < 1:
+            raise ValueError(f"guard setting 'band' must be 0 (off) or >= 1, got {self.band}")
+
+    def factor(self, passes: torch.Tensor) -> torch.Tensor:
+        """g(N) = threshold * N^growth for pass counts (B,)."""
+        return self.threshold * passes.to(torch.float64).clamp(min=1.0) ** self.growth
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "GuardConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ValueError(f"unknown guard setting(s) {', '.join(unknown)}")
+        return cls(**dict(data))
+
+
+#: The guard on, with the measured defaults (see the module docstring).
+DEFAULT_ON = GuardConfig(enabled=True)
+
+
+# ------------------------------------------------------------------------ input guard
+
+class Guarded(NamedTuple):
+    estimates: torch.Tensor   # (B, 5, 3, H, W) Xhat
+    variances: torch.Tensor   # (B, 5, H, W) V with outliers replaced (network input only)
+    outliers: torch.Tensor    # (B, 5, H, W) bool: where X was replaced
+
+
+#: Above this fraction of candidate pixels, :func:`find_outliers` bounds the medians with
+#: :func:`local_floor` first instead of gathering every candidate's window.
+_GATHER_FRACTION = 1 / 8
+
+
+def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torch.Tensor,
+                  cfg: GuardConfig) -> torch.Tensor:
+    """The outlier test of the module docstring, (B, 5, H, W) bool."""
+    b = estimates.shape[0]
+    lum = estimates.mean(2)
+    eps = (cfg.floor * _scale_of(lum)).view(b, 1, 1, 1)
+    g = cfg.factor(passes).to(lum.dtype).view(b, 1, 1, 1)
+    # Per-pixel necessary conditions first (M >= 0); the 3x3 median only where they hold.
+    mask = (variances.clamp(min=0).sqrt() >= cfg.min_rel_error * lum) & (lum > g * eps)   # sqrt(V)/Xbar >= r0
+    if mask.sum() > _GATHER_FRACTION * mask.numel():
+        mask &= lum > g * (local_floor(lum) + eps)                   # median >= floor: a cheap bound
+    idx = mask.nonzero(as_tuple=True)
+    if idx[0].numel():
+        med = _window_median(lum.unsqueeze(2), idx).squeeze(1)
+        mask[idx] = lum[idx] > g.view(b)[idx[0]] * (med + eps.view(b)[idx[0]])
+    return mask
+
+
+def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """3 x 3 medians (replicate padding) of x (B, 5, C, H, W) at the pixels ``idx`` (b, k,
+    row, col index tensors), (n, C); only those windows are gathered."""
+    h, w = x.shape[-2:]
+    offs = torch.arange(-1, 2, device=x.device)
+    rr = (idx[2][:, None] + offs).clamp(0, h - 1)                       # (n, 3)
+    cc = (idx[3][:, None] + offs).clamp(0, w - 1)
+    r9 = rr[:, :, None].expand(-1, 3, 3).reshape(-1, 9)
+    c9 = cc[:, None, :].expand(-1, 3, 3).reshape(-1, 9)
+    win = x[idx[0][:, None], idx[1][:, None], :, r9, c9]               # (n, 9, C)
+    return win.median(dim=1).values
+
+
+def _replace_outliers(est: torch.Tensor, var: torch.Tensor, mask: torch.Tensor) -> None:
+    """Write the 3 x 3 medians into ``est`` (B, 5, 3, H, W) and ``var`` (B, 5, H, W) at
+    ``mask``, in place (all medians are taken before anything is written)."""
+    idx = mask.nonzero(as_tuple=True)
+    med, vmed = _window_median(est, idx), _window_median(var.unsqueeze(2), idx)
+    est[idx[0], idx[1], :, idx[2], idx[3]] = med
+    var[idx] = vmed.squeeze(1)
+
+
+def guard_estimates(estimates: torch.Tensor, variances: torch.Tensor, passes: torch.Tensor,
+                    cfg: GuardConfig) -> Guarded:
+    """Replace the outliers of each estimate by their 3 x 3 median (whole images).
+
+    estimates (B, 5, 3, H, W) raw radiance, variances (B, 5, H, W), passes (B,).
+    Returns the inputs themselves where nothing is an outlier, else new tensors.
+    """
+    mask = find_outliers(estimates, variances, passes, cfg)
+    if not bool(mask.any()):
+        return Guarded(estimates, variances, mask)
+    est, var = estimates.clone(), variances.clone()
+    _replace_outliers(est, var, mask)
+    return Guarded(est, var, mask)
+
+
+def passes_of(buf: BufferFile) -> float:
+    """The pass count N of a buffer file (header ``ppmrecon.passes``)."""
+    try:
+        n = float(buf.header[H_PASSES])
+    except (KeyError, TypeError, ValueError):
+        n = float("nan")
+    if not math.isfinite(n) or n < 0:
+        raise UsageError(f"the model needs the pass count, but the buffer header has no valid '{H_PASSES}'")
+    return n
+
+
+def guard_buffer(buf: BufferFile, cfg: GuardConfig) -> BufferFile:
+    """A copy of ``buf`` with guarded estimates and variances (``buf`` itself when the
+    guard is off or finds nothing)."""
+    if not cfg.enabled:
+        return buf
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    var = torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None]
+    mask = find_outliers(est, var, torch.tensor([passes_of(buf)]), cfg)
+    if not bool(mask.any()):
+        return buf
+    estimates, variances = buf.estimates.astype(np.float32, copy=True), buf.variances.astype(np.float32, copy=True)
+    # views of the copies in the (B, 5, 3, H, W) layout: written in place, no relayout
+    _replace_outliers(torch.from_numpy(estimates).permute(0, 3, 1, 2)[None], torch.from_numpy(variances)[None], mask)
+    return replace(buf, estimates=estimates, variances=variances)
+
+
+# ------------------------------------------------------------------------ output band
+
+def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: float) -> torch.Tensor:
+    """Clamp a combined image (B, 3, H, W) into ``[min_k X_k / band, max_k X_k * band]``
+    of its five inputs y (B, 3, H, W), z (B, 4, 3, H, W) at each pixel and channel.
+
+    See the module docstring for why the output stays within Appendix A's bounds.
+    ``band = 0`` only clamps at 0 (radiance is nonnegative). Differentiable (a clamp).
+    """
+    if band == 0:
+        return image.clamp(min=0.0)
+    lo = torch.minimum(y, z.amin(1)).clamp(min=0.0)
+    hi = torch.maximum(y, z.amax(1))
+    if band != 1:
+        lo, hi = lo / band, hi * band
+    return torch.minimum(torch.maximum(image, lo), hi)
