@@ -51,6 +51,7 @@ def relmse_trimmed(est: np.ndarray, ref: np.ndarray, discard: float = 1e-3, chan
     keep = max(1, int(round(m.size * (1.0 - discard))))
     return float(m[:keep].mean())
 
+
 def block_means(img: np.ndarray, block: int = 8) -> np.ndarray:
     """Means of ``block`` x ``block`` tiles of an (H, W, C) image, (H // block, W // block, C);
     a partial last row/column of tiles is left out (every mean covers a full tile)."""
@@ -69,3 +70,29 @@ def relmse_blocks(est: np.ndarray, ref: np.ndarray, block: int = 8) -> float:
     _check(est, ref)
     return relmse(block_means(est, block), block_means(ref, block))
 
+
+#: A pixel is a firefly when its estimate exceeds FIREFLY_FACTOR x (reference +
+#: FIREFLY_FLOOR x the reference image's mean); see :func:`firefly_mask`.
+FIREFLY_FACTOR = 10.0
+FIREFLY_FLOOR = 0.01
+
+
+def firefly_mask(est: np.ndarray, ref: np.ndarray, factor: float = FIREFLY_FACTOR,
+                 floor: float = FIREFLY_FLOOR, channel_axis: int = -1) -> np.ndarray:
+    """Firefly pixels of ``est`` against ``ref`` (boolean map, channel axis reduced away):
+
+        mean_l est_{c,l} > factor * (mean_l ref_{c,l} + floor * mean(ref))
+
+    on the channel means, as relMSE uses them. The test is scale-free (radiance x 1e4
+    finds the same pixels), and the floor, a fraction of the reference image's mean, keeps
+    pixels that are black in the reference from counting every speck of noise there."""
+    _check(est, ref)
+    e = np.asarray(est, dtype=np.float64).mean(axis=channel_axis)
+    r = np.asarray(ref, dtype=np.float64).mean(axis=channel_axis)
+    return e > factor * (r + floor * float(r.mean()))
+
+
+def firefly_count(est: np.ndarray, ref: np.ndarray, factor: float = FIREFLY_FACTOR,
+                  floor: float = FIREFLY_FLOOR, channel_axis: int = -1) -> int:
+    """How many pixels :func:`firefly_mask` flags."""
+    return int(firefly_mask(est, ref, factor, floor, channel_axis).sum())

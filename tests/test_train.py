@@ -1,11 +1,14 @@
 """Training pipeline: data generation -> fit -> denoise end to end, augmentation of
-normals, and refusal of corrupt or partial data-set items."""
+normals, refusal of corrupt or partial data-set items; the data set's two references,
+their agreement, firefly counts, resuming, and version-1 manifests."""
 
 from __future__ import annotations
 
 import json
 import shutil
 import time
+from dataclasses import asdict
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +25,10 @@ from ppmrecon.model import cli as denoise_cli  # noqa: E402
 from ppmrecon.render.eye import trace_eye  # noqa: E402
 from ppmrecon.train import cli as train_cli  # noqa: E402
 from ppmrecon.train.augment import transform_image, transform_normals  # noqa: E402
-from ppmrecon.train.datagen import DataConfig, generate, input_name  # noqa: E402
+from ppmrecon.errors import UsageError  # noqa: E402
+from ppmrecon.metrics import firefly_count, firefly_mask, relmse  # noqa: E402
+from ppmrecon.train.datagen import (LEGACY_CONFIG, MANIFEST_VERSION, REFERENCE, REFERENCE_HALVES,  # noqa: E402
+                                    DataConfig, generate, input_name)
 from ppmrecon.train.dataset import PatchSampler, load_split  # noqa: E402
 
 TINY = DataConfig(scenes=2, first_seed=1, validation_every=2, resolution=(24, 24), photons=2048,
@@ -139,3 +145,134 @@ def test_corrupt_and_partial_items_are_reported_and_skipped(tiny_data, tmp_path)
     for name in (input_name(4, 1), input_name(2, 1), input_name(1, 1)):
         assert name in text
     assert len(PatchSampler(samples, 16).batch(3)[0]) == 3
+
+
+# ------------------------------------------------------------ data set v2 (issue 12)
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "data"
+
+
+def test_firefly_mask_is_scale_free_and_ignores_faint_noise_on_black():
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(0.5, 1.0, (32, 32, 3))
+    ref[:8] = 0.0                                     # black in the reference
+    est = ref * rng.uniform(0.8, 1.2, ref.shape)      # ordinary noise: no firefly
+    est[:8] = 1e-3 * ref[8:].mean()                   # faint noise on black: below the floor
+    est[20, 5] = 50 * ref[20, 5]                      # a firefly on a lit pixel
+    est[2, 3] = 1.0                                   # and one on black
+    assert firefly_mask(est, ref).shape == (32, 32)
+    assert set(zip(*np.nonzero(firefly_mask(est, ref)))) == {(20, 5), (2, 3)}
+    for scale in (1e-4, 1e4):
+        assert firefly_count(est * scale, ref * scale) == 2
+
+
+def test_generate_writes_two_references_agreement_fireflies_and_budgets(tiny_data):
+    root, _ = tiny_data
+    manifest = json.loads((root / "manifest.json").read_text())
+    assert manifest["version"] == MANIFEST_VERSION == 2
+    for s in manifest["scenes"]:
+        folder = root / s["id"]
+        (a, _), (b, _) = (B.read_rgb(folder / n) for n in REFERENCE_HALVES)
+        ref, _ = B.read_rgb(folder / REFERENCE)
+        assert np.allclose(ref, 0.5 * (a + b), rtol=1e-6, atol=0)  # the training reference is the mean
+        assert not np.array_equal(a, b)                              # of two independent renders
+        assert len({f["seed"] for f in s["references"]}) == 2
+        assert [f["passes"] for f in s["references"]] == [TINY.reference_passes] * 2
+        agree = s["agreement"]
+        assert agree["relmse"] == pytest.approx(0.5 * (relmse(a, b) + relmse(b, a)))
+        assert 0 < agree["relmse_trimmed"] <= agree["relmse"] * (1 + 1e-9)
+        assert agree["mean_relmse_estimate"] == pytest.approx(agree["relmse"] / 4)
+        m = float(ref.mean())
+        assert agree["relmse_normalised"] == pytest.approx(0.5 * (relmse(a / m, b / m) + relmse(b / m, a / m)))
+        for f in s["inputs"]:
+            buf = B.read_buffers(folder / f["file"])
+            y, z4 = firefly_mask(buf.estimates[0], ref), firefly_mask(buf.estimates[4], ref)
+            assert (f["fireflies"], f["fireflies_y"], f["fireflies_z4"]) == \
+                (int((y | z4).sum()), int(y.sum()), int(z4.sum()))
+        assert set(s["items"]) == {"inputs_s0", "inputs_s1", "reference_a", "reference_b"}
+        assert s["items"]["inputs_s0"]["passes"] == max(TINY.input_passes)
+        assert s["items"]["reference_b"]["photons"] == TINY.reference_photons
+        assert all(item["wall_seconds"] >= item["render_seconds"] > 0 for item in s["items"].values())
+        assert 1e-4 <= s["params"]["radiance_scale"] <= 1e4
+
+
+def test_rerun_redoes_only_what_is_missing(tiny_data, tmp_path):
+    root, _ = tiny_data
+    data = tmp_path / "data"
+    shutil.copytree(root, data)
+    before = json.loads((data / "manifest.json").read_text())
+    first, second = before["scenes"][0]["id"], before["scenes"][1]["id"]
+    (data / second / REFERENCE_HALVES[1]).unlink()
+    (data / second / input_name(4, 0)).unlink()
+    untouched = (data / first / REFERENCE).stat().st_mtime_ns
+    after = generate(TINY, data, workers=1, quiet=True)
+    s0, s1 = after["scenes"]
+    assert s0["items"] == before["scenes"][0]["items"] and s0["agreement"] == before["scenes"][0]["agreement"]
+    assert (data / first / REFERENCE).stat().st_mtime_ns == untouched
+    old = before["scenes"][1]["items"]
+    assert s1["items"]["inputs_s1"] == old["inputs_s1"] and s1["items"]["reference_a"] == old["reference_a"]
+    assert s1["items"]["inputs_s0"] != old["inputs_s0"] and s1["items"]["reference_b"] != old["reference_b"]
+    assert (data / second / REFERENCE_HALVES[1]).is_file() and (data / second / input_name(4, 0)).is_file()
+    assert s1["agreement"]["relmse"] > 0 and all("fireflies" in f for f in s1["inputs"])
+    assert len(s1["inputs"]) == 6
+
+
+def test_version1_manifest_is_read_and_completed(tiny_data, tmp_path):
+    """A data set written by manifest version 1 (one reference, no agreement, items or
+    firefly counts; a config without the new keys) still trains, and rerunning
+    ``generate`` with the version-1 values of the new keys renders nothing but adds the
+    firefly counts; another configuration is refused."""
+    root, _ = tiny_data
+    data = tmp_path / "v1"
+    shutil.copytree(root, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    manifest["version"] = 1
+    for key in LEGACY_CONFIG:
+        manifest["config"].pop(key)
+    for s in manifest["scenes"]:
+        for key in ("references", "agreement", "items"):
+            s.pop(key)
+        s["reference"].pop("renders")
+        for f in s["inputs"]:
+            for key in ("fireflies", "fireflies_y", "fireflies_z4"):
+                f.pop(key)
+        for name in REFERENCE_HALVES:
+            (data / s["id"] / name).unlink()
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    warnings = []
+    assert len(load_split(data, "train", warn=warnings.append)) == 6 and not warnings
+
+    with pytest.raises(UsageError, match="another configuration"):
+        generate(TINY, data, workers=1, quiet=True)
+    legacy = DataConfig(**{**asdict(TINY), **LEGACY_CONFIG})
+    t = time.perf_counter()
+    done = generate(legacy, data, workers=1, quiet=True)
+    assert time.perf_counter() - t < 5.0
+    assert done["version"] == 2
+    assert [s["id"] for s in done["scenes"]] == [s["id"] for s in manifest["scenes"]]
+    assert all("fireflies" in f for s in done["scenes"] for f in s["inputs"])
+    assert not any((data / s["id"] / REFERENCE_HALVES[0]).exists() for s in done["scenes"])
+
+
+@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu"])
+def test_data_configs_load(name):
+    DataConfig.load(CONFIGS / f"{name}.json")
+
+
+def test_v2_configs_are_the_issue_12_sets():
+    full, cpu = DataConfig.load(CONFIGS / "v2.json"), DataConfig.load(CONFIGS / "v2_cpu.json")
+    assert len(full.families) >= 8 and full.scenes >= 200 and min(full.resolution) >= 128
+    assert full.input_passes == (4, 16, 64, 256, 1024) and len(full.seeds) >= 2
+    assert full.references == 2 and full.reference_passes > 1024 and full.radiance_log10 == (-4, 4)
+    assert cpu.families == full.families and max(cpu.input_passes) <= 256 and cpu.references == 2
+    # version-1 sets stay what they were
+    for name in ("cpu", "tiny"):
+        old = asdict(DataConfig.load(CONFIGS / f"{name}.json"))
+        assert json.loads(json.dumps({k: old[k] for k in LEGACY_CONFIG})) == LEGACY_CONFIG
+
+
+def test_data_config_rejects_unknown_family_and_a_thin_reference():
+    with pytest.raises(UsageError, match="nope"):
+        DataConfig(families=("glossy", "nope")).validate()
+    with pytest.raises(UsageError, match="16x"):
+        DataConfig(reference_passes=16).validate()
