@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ppmrecon import buffers as B  # noqa: E402
-from ppmrecon.fileio import atomic_write, write_json  # noqa: E402
+from ppmrecon.fileio import write_json, write_text  # noqa: E402
 from ppmrecon.metrics import relmse, relmse_blocks, relmse_trimmed  # noqa: E402
 
 #: (name, scene spec relative to --scenes or a built-in name, reference kind)
@@ -65,13 +65,19 @@ def worktree(rev: str, where: Path) -> Path:
 
 
 def render(code: Path, scene: str, out: Path, args: list[str]) -> dict:
+    """Render with the package in ``code``: run from that folder (``-m`` puts the working
+    folder first on sys.path, ahead of the editable install), scene paths made absolute."""
     env = dict(os.environ, PYTHONPATH=str(code))
+    if Path(scene).is_file():
+        scene = str(Path(scene).resolve())
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "ppmrecon.render.cli", scene, "-q", "-o", str(out), *args],
-                          env=env, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "ppmrecon.render.cli", scene, "-q", "-o", str(out.resolve()), *args],
+                          env=env, capture_output=True, text=True, cwd=code)
     if proc.returncode != 0:
         raise SystemExit(f"bench_estimators: render failed ({' '.join(args)}): {proc.stderr.strip()[-400:]}")
     channels, header = B.read_channels(out)
+    if header.get("ppmrecon.rr_depth") is None and code == ROOT:
+        raise SystemExit(f"bench_estimators: {out} was not rendered by this tree's renderer")
     return {"channels": channels, "header": header, "wall": time.perf_counter() - t0}
 
 
@@ -80,7 +86,7 @@ def rgb(channels: dict, layer: str | None = None) -> np.ndarray:
     return np.stack([channels[c] for c in names], -1).astype(np.float64)
 
 
-def path_reference(spec: str, width: int, spp: int, cache: Path) -> tuple[np.ndarray, dict]:
+def path_reference(name: str, spec: str, width: int, spp: int, cache: Path) -> tuple[np.ndarray, dict]:
     from ppmrecon.backend import choose_variant
 
     choose_variant()
@@ -90,7 +96,7 @@ def path_reference(spec: str, width: int, spp: int, cache: Path) -> tuple[np.nda
 
     loaded = load_scene(spec, resolution=width)
     max_depth, rr_depth = loaded.depths()
-    key = cache / f"path_{Path(spec).stem}_{width}_{spp}spp_d{max_depth}.exr"
+    key = cache / f"path_{name}_{width}_{spp}spp_d{max_depth}.exr"
     if key.exists():
         return B.read_rgb(key)[0].astype(np.float64), {"kind": f"path {spp} spp", "cached": True}
     integrator = mi.load_dict({"type": "path", "max_depth": max_depth, "rr_depth": rr_depth})
@@ -103,10 +109,11 @@ def path_reference(spec: str, width: int, spp: int, cache: Path) -> tuple[np.nda
     return img, {"kind": f"path {spp} spp", "cached": False}
 
 
-def ppm_reference(after: Path, spec: str, width: int, passes: int, photons: int, cache: Path) -> tuple[np.ndarray, dict]:
+def ppm_reference(after: Path, name: str, spec: str, width: int, passes: int, photons: int,
+                  cache: Path) -> tuple[np.ndarray, dict]:
     halves = []
     for seed in (1001, 1002):
-        key = cache / f"ppm_{Path(spec).stem}_{width}_{passes}p_{photons}ph_s{seed}.exr"
+        key = cache / f"ppm_{name}_{width}_{passes}p_{photons}ph_s{seed}.exr"
         if not key.exists():
             render(after, spec, key, ["--single", "--passes", str(passes), "--photons", str(photons),
                                       "--resolution", str(width), "--seed", str(seed)])
@@ -133,9 +140,16 @@ def main() -> None:
     p.add_argument("--ref-passes", type=int, default=512)
     p.add_argument("--before", default=DEFAULT_BEFORE)
     p.add_argument("--only", nargs="*", default=None, help="scene names to run")
+    p.add_argument("--refs-only", action="store_true", help="render (cache) the references and stop")
     p.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     p.add_argument("--work", type=Path, default=ROOT / "out" / "bench_estimators")
+    p.add_argument("--report-only", action="store_true", help="rewrite estimators.md from estimators.json")
     args = p.parse_args()
+    if args.report_only:
+        import json
+
+        write_text(args.out / "estimators.md", markdown(json.loads((args.out / "estimators.json").read_text())))
+        return
 
     args.work.mkdir(parents=True, exist_ok=True)
     before = worktree(args.before, args.work / "before_src")
@@ -151,13 +165,17 @@ def main() -> None:
         cache = args.work / "refs"
         cache.mkdir(exist_ok=True)
         if ref_kind == "path":
-            ref, ref_info = path_reference(spec, args.width, args.ref_spp, cache)
+            ref, ref_info = path_reference(name, spec, args.width, args.ref_spp, cache)
         else:
-            ref, ref_info = ppm_reference(after, spec, args.width, args.ref_passes, args.photons, cache)
+            ref, ref_info = ppm_reference(after, name, spec, args.width, args.ref_passes, args.photons, cache)
+        if args.refs_only:
+            print(f"{name}: reference ready ({ref_info['kind']})", file=sys.stderr, flush=True)
+            continue
         row = {"scene": name, "reference": ref_info, "entries": {}}
         common = ["--time", str(args.time), "--photons", str(args.photons), "--resolution", str(args.width)]
-        versions = [("before", before, []), ("after", after, [])] + \
-                   [(f"after+direct={m}", after, ["--direct", m]) for m in ("glossy", "all")]
+        versions = [("before", before, [])] + \
+                   [(f"after+direct={m}" if m != "none" else "after", after, ["--direct", m])
+                    for m in ("none", "glossy", "all")]
         for version, code, extra in versions:
             out = args.work / f"{name}_{version}_single.exr"
             r = render(code, spec, out, common + extra + ["--single"])
@@ -175,11 +193,13 @@ def main() -> None:
             row[f"fppm_radius_median/{version}"] = float(np.median(radius[radius > 0])) if (radius > 0).any() else 0.0
         rows.append(row)
         print(f"{name}: done", file=sys.stderr, flush=True)
+    if args.refs_only:
+        return
     report = {"time_budget": args.time, "width": args.width, "photons": args.photons, "before": args.before,
               "rows": rows}
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "estimators.json", report)
-    atomic_write(args.out / "estimators.md", markdown(report).encode())
+    write_text(args.out / "estimators.md", markdown(report))
 
 
 def markdown(r: dict) -> str:

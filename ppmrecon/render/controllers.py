@@ -39,8 +39,6 @@ from . import hypothesis as H
 #: The five initial bandwidths relative to the k-NN distance, smallest first
 #: (paper 002 Sec. 4.1): chain 0 is ~y, chains 1..4 are ~z^1..~z^4.
 CHAIN_SCALES: tuple[float, ...] = (0.25, 0.5 ** 1.5, 0.5, 0.5 ** 0.5, 1.0)
-#: The conventional single-bandwidth baseline starts at the second-smallest.
-SINGLE_SCALE: float = CHAIN_SCALES[1]
 
 #: Dr.Jit's spelling of the element-wise operations of :mod:`.hypothesis`.
 DRJIT_OPS = H.ArrayOps(floor=dr.floor, select=dr.select, minimum=dr.minimum,

@@ -30,8 +30,8 @@ import mitsuba as mi
 import numpy as np
 
 from .. import buffers as B
+from .controllers import CHAIN_SCALES, Controller, make_controller
 from .direct import DIRECT_MODES, direct_light, uses_direct
-from .controllers import CHAIN_SCALES, SINGLE_SCALE, Controller, make_controller
 from .estimates import PlainMean, RunningMean
 from .eye import GatherPoints, trace_eye
 from .gather import gather
@@ -156,7 +156,9 @@ class Renderer:
             settings.method,
             defaults={"alpha": settings.alpha, "knn": settings.knn, "photons": settings.photons},
             **settings.method_params)
-        self.scales = (SINGLE_SCALE,) if settings.layout == "single" else CHAIN_SCALES
+        # The baseline starts at its own k-NN distance (single_knn), the five chains at
+        # CHAIN_SCALES x the k-NN distance (knn).
+        self.scales = (1.0,) if settings.layout == "single" else CHAIN_SCALES
         self.n_chains = len(self.scales)
         self.means = [RunningMean.zeros(self.n_pixels) for _ in range(self.n_chains)]
         self.albedo = PlainMean(dr.zeros(mi.Color3f, self.n_pixels))
@@ -201,9 +203,7 @@ class Renderer:
     def _initial_radii(self, points: list[GatherPoints], photon_p: mi.Point3f) -> list[mi.Float]:
         s = self.settings
         r_lo, r_hi = s.radius_min_frac * self.radius_scene, s.radius_max_frac * self.radius_scene
-        # The baseline's radius is its own k-NN distance; the five chains scale r_k.
         k = s.single_knn if s.layout == "single" else s.knn
-        scales = (1.0,) if s.layout == "single" else self.scales
         r = knn_radius(points[0], photon_p, k, r_lo, r_hi)
         for other in points[1:]:  # where A found no surface, use B's
             missing = np.isnan(r)
@@ -212,7 +212,7 @@ class Renderer:
         missing = np.isnan(r)
         fallback = float(np.median(r[~missing])) if (~missing).any() else r_hi
         r[missing] = fallback
-        return [mi.Float((r * scale).astype(np.float32)) for scale in scales]
+        return [mi.Float((r * scale).astype(np.float32)) for scale in self.scales]
 
     def run_pass(self) -> None:
         """Render pass ``passes_done + 1`` and fold it into the estimates."""

@@ -79,6 +79,7 @@ class DataConfig:
     seeds: tuple[int, ...] = (0, 1)
     reference_passes: int = 512
     reference_photons: int = 65536
+    #: Segments of a whole path (Mitsuba's max_depth); -1 = unbounded with roulette.
     max_depth: int = 8
     #: Scene families, in round-robin order over the scene index (default: all).
     families: tuple[str, ...] = FAMILIES
@@ -103,8 +104,11 @@ class DataConfig:
         return cfg
 
     def validate(self, where: str = "data config") -> None:
-        if self.scenes <= 0 or self.photons <= 0 or self.reference_photons <= 0 or self.max_depth <= 0:
-            raise UsageError(f"{where}: scenes, photons and max_depth must be positive")
+        if self.scenes <= 0 or self.photons <= 0 or self.reference_photons <= 0:
+            raise UsageError(f"{where}: scenes and photons must be positive")
+        if self.max_depth == 0 or self.max_depth < -1:
+            raise UsageError(f"{where}: max_depth must be positive (path segments) or -1 (unbounded), "
+                             f"got {self.max_depth}")
         if len(self.input_passes) < 3 or min(self.input_passes) <= 0:
             raise UsageError(f"{where}: input_passes needs at least three positive pass counts")
         if len(self.seeds) < 2 or len(set(self.seeds)) != len(self.seeds):
