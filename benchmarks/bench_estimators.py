@@ -213,6 +213,18 @@ def markdown(r: dict) -> str:
         "`fppm.*` are the five chains of one FPPM render. relMSE, its value on 8x8 block means (low "
         "frequencies), trimmed relMSE (worst 0.1% of pixels left out), and mean luminance / the reference's.",
         "",
+        "What changed between the versions, and why outputs move: (1) path depth is the scene's, counted in "
+        "segments of the whole path as Mitsuba does (before: photons and eye paths were each cut at the scene's "
+        "value, or at 8 when it was -1 or above 64, so a depth-10 scene could carry 20-segment paths); photon "
+        "roulette starts at Mitsuba's rr_depth 5 instead of 3 (unbiased either way); (2) FPPM counts every "
+        "emitted light path in its F-test (fewer false shrinks); (3) non-finite terms are dropped alone "
+        "(none occurred in these renders); (4) the single baseline starts at the k = 10 radius; (5) "
+        "`direct=*` adds MIS direct lighting at gather points. The renders share the machine with other "
+        "jobs, so pass counts at equal time carry some timing noise; the `ppm` references are renders of "
+        "the *after* version without direct lighting, so a mean-luminance ratio there compares estimators, "
+        "not truth (the box references carry eye-path fireflies of its 31250-radiance lights: read its "
+        "trimmed figures).",
+        "",
     ]
     for row in r["rows"]:
         ref = row["reference"]

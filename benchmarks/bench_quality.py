@@ -19,7 +19,6 @@ Writes ``quality.json``, ``quality.md`` and ``quality_consistency.png`` into --o
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -32,7 +31,8 @@ sys.path.insert(0, str(ROOT))
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.backend import choose_variant  # noqa: E402
-from ppmrecon.metrics import relmse  # noqa: E402
+from ppmrecon.fileio import write_json, write_text  # noqa: E402
+from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
 
 LITERATURE = {"box": "box/box.xml", "cornell-box": "cornell-box/cbox_SPPM.xml",
               "cornell-box-spotlight": "cornell-box-spotlight/cbox_SPPM.xml"}
@@ -54,10 +54,34 @@ def ours(buf: B.BufferFile, model) -> np.ndarray:
 
 
 def scores(buf: B.BufferFile, ref: np.ndarray, model) -> dict[str, float]:
-    out = {name: relmse(buf.estimates[k], ref) for k, name in enumerate(B.ESTIMATES)}
+    """relMSE and 8x8-block relMSE (``*_8x8``) of each input, the best of them, ours and
+    OIDN(~z^1); blocks need an image of at least 8x8."""
+    images = {name: buf.estimates[k] for k, name in enumerate(B.ESTIMATES)}
+    images["ours"] = ours(buf, model)
+    images["oidn_z1"] = oidn(buf)
+    out = {}
+    for name, img in images.items():
+        out[name] = relmse(img, ref)
+        out[f"{name}_8x8"] = relmse_blocks(img, ref)
     out["best_single"] = min(out[n] for n in B.ESTIMATES)
-    out["ours"] = relmse(ours(buf, model), ref)
-    out["oidn_z1"] = relmse(oidn(buf), ref)
+    out["best_single_8x8"] = min(out[f"{n}_8x8"] for n in B.ESTIMATES)
+    return out
+
+
+def by_family_and_n(rows: list[dict]) -> list[dict]:
+    """Means over the validation images of each (family, N): issue 12's curves."""
+    groups: dict[tuple[str, int], list[dict]] = {}
+    for r in rows:
+        groups.setdefault((r["family"], r["passes"]), []).append(r)
+    out = []
+    for (family, n), rs in sorted(groups.items()):
+        keys = ("ours", "best_single", "oidn_z1", "ours_8x8", "best_single_8x8")
+        m = {k: float(np.mean([r[k] for r in rs])) for k in keys}
+        # ratios per image, then the mean: one bright scene must not decide a family
+        m["ours_vs_best"] = float(np.mean([r["ours"] / r["best_single"] for r in rs]))
+        m["ours_vs_best_8x8"] = float(np.mean([r["ours_8x8"] / r["best_single_8x8"] for r in rs]))
+        m["worse_than_best"] = int(sum(r["ours"] > r["best_single"] for r in rs))
+        out.append({"family": family, "passes": n, "images": len(rs), **m})
     return out
 
 
@@ -114,18 +138,26 @@ def main() -> None:
     mid = sorted(cfg["input_passes"])[len(cfg["input_passes"]) // 2]
     report: dict = {"model": str(args.model), "data": str(args.data), "middle_passes": mid}
 
-    # 1. validation scenes of the data set
-    rows, per_scene = [], []
+    # 1. validation scenes of the data set, every N (the headline figure: the middle N)
+    rows, per_scene, every_n = [], [], []
     for s in manifest["scenes"]:
-        if s["split"] != "val":
+        if s["split"] != "val" or not (args.data / s["id"] / REFERENCE).is_file():
             continue
         ref = B.read_rgb(args.data / s["id"] / REFERENCE)[0]
-        for seed in cfg["seeds"]:
-            buf = B.read_buffers(args.data / s["id"] / input_name(mid, seed))
-            row = scores(buf, ref, model)
-            rows.append(row)
-            per_scene.append({"scene": s["id"], "seed": seed, **row})
-    report["validation"] = {"images": len(rows), "mean": mean_scores(rows), "per_image": per_scene}
+        for n in sorted(cfg["input_passes"]):
+            for seed in cfg["seeds"]:
+                path = args.data / s["id"] / input_name(n, seed)
+                if not path.is_file():
+                    continue
+                row = scores(B.read_buffers(path), ref, model)
+                every_n.append({"scene": s["id"], "family": s["family"], "passes": n, "seed": seed, **row})
+                if n == mid:
+                    rows.append(row)
+                    per_scene.append({"scene": s["id"], "seed": seed, **row})
+    if not rows:
+        sys.exit(f"bench_quality: {args.data}: no finished validation scene with N = {mid}")
+    report["validation"] = {"images": len(rows), "mean": mean_scores(rows), "per_image": per_scene,
+                            "by_family_and_n": by_family_and_n(every_n)}
 
     # 2. literature scenes (held out)
     if args.scenes is not None:
@@ -156,10 +188,10 @@ def main() -> None:
     curve = [{"passes": n, **scores(snaps[n], ref, model)} for n in ns]
     report["consistency"] = {"scene": val["id"], "reference_passes": ref_passes,
                              "reference_photons": cfg["photons"] * 2, "curve": curve}
-    (args.out / "quality.json").write_text(json.dumps(report, indent=1))
+    write_json(args.out / "quality.json", report)
     plot(report["consistency"], args.out / "quality_consistency.png")
     md = to_markdown(report)
-    (args.out / "quality.md").write_text(md)
+    write_text(args.out / "quality.md", md)
     print(md)
 
 
@@ -191,6 +223,17 @@ def to_markdown(r: dict) -> str:
              f"| best single input (per image) | {v['best_single']:.5f} | 1.00x |",
              f"| OIDN(~z^1) | {v['oidn_z1']:.5f} | {v['oidn_z1'] / v['best_single']:.2f}x |", "",
              "Per input: " + ", ".join(f"~{n} {v[n]:.5f}" for n in B.ESTIMATES), ""]
+    if r["validation"].get("by_family_and_n"):
+        lines += ["By family and N (means over validation images; ratios are means of per-image ratios; "
+                  "issue 12 targets ours <= 0.5x the best single input and 8x8-block relMSE <= the best "
+                  "input's):", "",
+                  "| family | N | images | ours | best single | ours / best | 8x8: ours | 8x8: best | 8x8 ratio | "
+                  "worse than best | OIDN(~z^1) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for x in r["validation"]["by_family_and_n"]:
+            lines.append(f"| {x['family']} | {x['passes']} | {x['images']} | {x['ours']:.4g} | {x['best_single']:.4g} | "
+                         f"{x['ours_vs_best']:.2f}x | {x['ours_8x8']:.3g} | {x['best_single_8x8']:.3g} | "
+                         f"{x['ours_vs_best_8x8']:.2f}x | {x['worse_than_best']} | {x['oidn_z1']:.4g} |")
+        lines.append("")
     if "literature" in r:
         lines += ["Literature scenes (held out; references rendered here):", "",
                   "| scene | size | N | ref passes | ours | best single | OIDN(~z^1) | ours / best |",

@@ -193,16 +193,18 @@ def test_guard_flag_overrides_the_checkpoint(model, tmp_path):
     guarded = tmp_path / "guarded.pt"
     assert main(["--init-checkpoint", str(guarded), "--guard", "on", "--quiet"]) == 0
     peak = {}
-    for ckpt, choice in ((guarded, "model"), (guarded, "off"), (model, "model"), (model, "on")):
+    for ckpt, choice in ((guarded, "model"), (guarded, "off"), (model, "model"), (model, "on"), (model, None)):
         out = tmp_path / f"{ckpt.stem}_{choice}.exr"
-        assert main([str(buffer_path), "--model", str(ckpt), "-o", str(out), "--guard", choice,
+        flag = [] if choice is None else ["--guard", choice]
+        assert main([str(buffer_path), "--model", str(ckpt), "-o", str(out), *flag,
                      "--quiet", "--threads", "1"]) == 0
         rgb, header = B.read_rgb(out)
         peak[ckpt.stem, choice] = float(rgb[5, 5].max())
-        on = choice == "on" or (choice == "model" and ckpt == guarded)
+        on = choice in ("on", None) or (choice == "model" and ckpt == guarded)
         assert header["ppmrecon.guard"] == ("on" if on else "off")
     assert peak["guarded", "off"] > 1e7 and peak["tiny", "model"] > 1e7       # straight through
     assert peak["guarded", "model"] < 10 and peak["tiny", "on"] < 10
+    assert peak["tiny", None] == peak["tiny", "on"]                            # on by default
 
 def test_console_script_is_installed(tmp_path):
     exe = shutil.which("ppmrecon-denoise", path=str(Path(sys.executable).parent))

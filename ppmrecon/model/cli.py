@@ -11,7 +11,8 @@ combination weight of each ~z^j (paper 002 Fig. 6). Without ``--model`` the ship
 default model is used if the package has one (``ppmrecon/data/models/default.pt``).
 ``--init-checkpoint`` writes an untrained network, for trying the pipeline end to end
 before a model has been trained. ``--guard`` switches the consistent firefly guard
-(:mod:`ppmrecon.model.guard`) on or off; by default it is what the checkpoint says.
+(:mod:`ppmrecon.model.guard`) on or off; by default it is on (measured on renders it was
+not tuned on: benchmarks/results/guard.md).
 """
 
 from __future__ import annotations
@@ -70,11 +71,12 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default="auto",
                    help="network precision; auto = bfloat16 on CPUs with native bf16 (AMX/AVX512-BF16), "
                         "else float32. The combiner is always float32")
-    p.add_argument("--guard", choices=("model", "on", "off"), default="model",
+    p.add_argument("--guard", choices=("model", "on", "off"), default=None,
                    help="consistent firefly guard: replace statistical outliers of each input by "
-                        "their 3x3 median and keep the output within its five inputs; 'model' "
-                        "(default) = as the checkpoint was trained; with --init-checkpoint, "
-                        "'on' stores it in the new model")
+                        "their 3x3 median and keep the output within its five inputs; 'on' (default; "
+                        "the checkpoint's guard settings if it has them), 'model' = as the checkpoint "
+                        "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
+                        "(default there: off)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     g = p.add_argument_group("making an untrained model")
     g.add_argument("--init-checkpoint", metavar="CKPT",
@@ -111,7 +113,7 @@ def _init_checkpoint(args) -> int:
     features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature,
                              scale_free=args.scale_free_features, outliers=args.outlier_features)
     model = checkpoint.init_checkpoint(args.init_checkpoint, load_preset(args.preset), features, seed=args.seed,
-                                       guard=guard_choice(args.guard, GuardConfig()))
+                                       guard=guard_choice(args.guard or "off", GuardConfig()))
     if not args.quiet:
         print(f"{args.init_checkpoint}: untrained '{model.preset.name}' model, "
               f"{parameter_count(model):,} parameters, {features.n_channels} input channels")
@@ -160,7 +162,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         progress.total = total
         progress.update(done, force=done == total)
 
-    guard = guard_choice(args.guard, model.guard)
+    guard = guard_choice(args.guard or "on", model.guard)
     start = time.perf_counter()
     try:
         result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision,

@@ -91,10 +91,10 @@ def build_parser() -> ArgumentParser:
                        help="fppm: r_min as a fraction of each chain's initial radius (default 0.25)")
     tests.add_argument("--per-channel", action="store_true",
                        help="fppm: F-test R, G and B separately (chromatic or textured lights) instead of luminance")
-    p.add_argument("--direct", choices=("none", "glossy", "all"), default="none",
+    p.add_argument("--direct", choices=("none", "glossy", "all"), default="all",
                    help="direct lighting by emitter + BSDF sampling (MIS) at gather points, photons for "
-                        "the indirect part only there: none, glossy (gather points with a glossy BSDF) "
-                        "or all (default: none)")
+                        "the indirect part only there: none (photons carry all light), glossy (gather "
+                        "points with a glossy BSDF) or all (default: all)")
     p.add_argument("--single", action="store_true",
                    help="render the conventional single-bandwidth image (one chain, one eye path) "
                         "into a plain R,G,B EXR")

@@ -63,8 +63,9 @@ class RenderSettings:
     #: k of the single-bandwidth baseline's k-NN initial radius (``layout="single"``):
     #: k = 10 is the r_20 / sqrt(2) radius that paper 002 calls "roughly k = 10".
     single_knn: int = 10
-    #: Direct lighting by MIS at gather points: "none", "glossy" or "all" (see .direct).
-    direct: str = "none"
+    #: Direct lighting by MIS at gather points: "none", "glossy" or "all" (see .direct);
+    #: "all" won at equal time on 5 of 6 scenes (benchmarks/results/estimators.md).
+    direct: str = "all"
     layout: str = "multi"
     method_params: dict[str, Any] = field(default_factory=dict)
     #: Initial radii are clamped to [min_frac, max_frac] x the scene's bounding radius.
