@@ -48,9 +48,11 @@ def oidn(buf: B.BufferFile, layer: int = 1) -> np.ndarray:
 
 
 def ours(buf: B.BufferFile, model) -> np.ndarray:
+    """What ``ppmrecon-denoise`` writes by default (firefly guard on)."""
+    from ppmrecon.model.cli import guard_choice
     from ppmrecon.model.infer import denoise
 
-    return denoise(buf, model).rgb
+    return denoise(buf, model, guard=guard_choice("on", model.guard)).rgb
 
 
 def scores(buf: B.BufferFile, ref: np.ndarray, model) -> dict[str, float]:
