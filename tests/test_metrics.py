@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from ppmrecon.metrics import relmse, relmse_map, relmse_trimmed
-from ppmrecon.train.loss import relative_log_l1, relative_log_l1_map
+from ppmrecon.train.loss import block_log_l1, relative_log_l1, relative_log_l1_map
 
 
 def test_relmse_one_pixel_by_hand():
@@ -109,3 +109,18 @@ def test_trimmed_relmse_drops_only_the_worst_pixels():
     assert plain > 1e3
     assert trimmed == pytest.approx(0.01 / 0.26, rel=1e-12)
     assert relmse_trimmed(est, ref, discard=0.0) == pytest.approx(plain, rel=1e-12)
+
+
+def test_block_loss_sees_a_smooth_bias_and_not_zero_mean_noise():
+    """The 8x8 block-mean term of the training loss: 0 for a perfect prediction, close
+    to 0 for +-10% checkerboard noise around the target (averages out in a block) while
+    Eq. 8 charges it, and as large as Eq. 8 for a uniform 2% darkening."""
+    target = torch.full((2, 3, 16, 24), 0.8)
+    assert float(block_log_l1(target.clone(), target)) == 0.0
+    checker = (torch.arange(16)[:, None] + torch.arange(24)[None, :]) % 2 * 2 - 1
+    noisy = target * (1 + 0.1 * checker)
+    assert float(block_log_l1(noisy, target)) < 0.01 * float(relative_log_l1(noisy, target))
+    dark = target * 0.98
+    assert float(block_log_l1(dark, target)) == pytest.approx(float(relative_log_l1(dark, target)), rel=1e-4)
+    with pytest.raises(ValueError, match="smaller than one 8x8 block"):
+        block_log_l1(target[..., :4, :4], target[..., :4, :4])

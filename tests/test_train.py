@@ -276,3 +276,18 @@ def test_data_config_rejects_unknown_family_and_a_thin_reference():
         DataConfig(families=("glossy", "nope")).validate()
     with pytest.raises(UsageError, match="16x"):
         DataConfig(reference_passes=16).validate()
+
+
+def test_fit_with_the_block_loss_term_and_a_bad_weight(tiny_data, tmp_path):
+    """lowfreq_weight adds the 8x8 block-mean term to Eq. 8 (a short run trains and logs a
+    finite loss); a negative weight is one line naming the file."""
+    root, _ = tiny_data
+    cfg = tmp_path / "train.json"
+    cfg.write_text(json.dumps({"preset": "tiny", "lowfreq_weight": 0.5, "epochs": 1, "steps_per_epoch": 2,
+                               "batch": 2, "lr": 1e-3}))
+    run = tmp_path / "run"
+    assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg), "--quiet"]) == 0
+    assert np.isfinite(json.loads((run / "history.json").read_text())[-1]["loss"])
+    cfg.write_text(json.dumps({"lowfreq_weight": -1}))
+    with pytest.raises(UsageError, match="lowfreq_weight must be a number >= 0"):
+        train_cli.main(["fit", str(root), "--out", str(tmp_path / "run2"), "--config", str(cfg), "--quiet"])

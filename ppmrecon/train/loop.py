@@ -36,7 +36,7 @@ from ..model.guard import GuardConfig, output_band
 from ..model.infer import denoise_inputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
-from .loss import relative_log_l1
+from .loss import block_log_l1, relative_log_l1
 
 STATE = "train_state.pt"
 MODEL = "model.pt"
@@ -61,10 +61,15 @@ class TrainConfig:
     #: Validate on this input pass count (None: the middle one of the data set).
     val_passes: int | None = None
     grad_clip: float = 1.0
+    #: Weight of the 8x8 block-mean term (:func:`.loss.block_log_l1`) added to Eq. 8.
+    lowfreq_weight: float = 0.0
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "TrainConfig":
-        return load_json_config(path, cls, "training config")
+        cfg = load_json_config(path, cls, "training config")
+        if not (isinstance(cfg.lowfreq_weight, (int, float)) and 0.0 <= cfg.lowfreq_weight < math.inf):
+            raise UsageError(f"{path}: lowfreq_weight must be a number >= 0, got {cfg.lowfreq_weight!r}")
+        return cfg
 
 
 def _validate(model: torch.nn.Module, samples: list[Sample], device: torch.device) -> dict[str, float]:
@@ -142,6 +147,8 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             if guard.enabled:     # the band inference applies (Eq. 8 clips at 0 itself)
                 pred = output_band(pred, y, z, guard.band)
             loss = relative_log_l1(pred, ref)
+            if cfg.lowfreq_weight:
+                loss = loss + cfg.lowfreq_weight * block_log_l1(pred, ref)
             if not torch.isfinite(loss):
                 raise UsageError(f"epoch {epoch + 1} step {step + 1}: the loss became {loss.item()}; "
                                  "lower --lr or check the data set")
