@@ -36,12 +36,16 @@ from .rng import make_rng
 DIRECT_MODES = ("none", "glossy", "all")
 
 
+def check_mode(mode: str) -> None:
+    if mode not in DIRECT_MODES:
+        raise ValueError(f"unknown direct-lighting mode '{mode}' (choose {', '.join(DIRECT_MODES)})")
+
+
 def uses_direct(gp: GatherPoints, mode: str, max_depth: int) -> mi.Bool:
     """Gather points whose direct light comes from :func:`direct_light` (and whose gather
     must then skip photons with d = 0): found, of the chosen kind, and with room for one
     more segment under ``max_depth`` (-1: unbounded)."""
-    if mode not in DIRECT_MODES:
-        raise ValueError(f"unknown direct-lighting mode '{mode}' (choose {', '.join(DIRECT_MODES)})")
+    check_mode(mode)
     if mode == "none":
         return dr.zeros(mi.Bool, dr.width(gp.found))
     use = mi.Bool(gp.found)

@@ -31,7 +31,8 @@ import numpy as np
 
 from .. import buffers as B
 from .controllers import CHAIN_SCALES, Controller, make_controller
-from .direct import DIRECT_MODES, direct_light, uses_direct
+from .direct import check_mode as check_direct_mode
+from .direct import direct_light, uses_direct
 from .estimates import PlainMean, RunningMean
 from .eye import GatherPoints, trace_eye
 from .gather import gather
@@ -87,8 +88,7 @@ class RenderSettings:
             raise ValueError(f"unknown kernel '{self.kernel}' (choose {', '.join(KERNELS)})")
         if self.layout not in LAYOUTS:
             raise ValueError(f"unknown layout '{self.layout}'")
-        if self.direct not in DIRECT_MODES:
-            raise ValueError(f"unknown direct-lighting mode '{self.direct}' (choose {', '.join(DIRECT_MODES)})")
+        check_direct_mode(self.direct)
 
 
 @dataclass

@@ -40,8 +40,6 @@ from .rng import make_rng
 SEGMENT_BOUNCES = 8
 #: Mitsuba's default ``rr_depth`` (its ``path`` integrator starts roulette there too).
 RR_DEPTH = 5
-#: ``max_depth`` of an unbounded path (Mitsuba's convention).
-UNBOUNDED = -1
 
 
 @dataclass
