@@ -55,6 +55,11 @@ def read_json(path: str | os.PathLike, what: str, missing_hint: str = "") -> Any
         raise UsageError(f"{path}: broken {what}, not valid JSON ({exc.msg} at line {exc.lineno})") from None
 
 
+def unknown_keys(cls: type, data: Any) -> list[str]:
+    """The keys of mapping ``data`` that are not fields of dataclass ``cls``, sorted."""
+    return sorted(set(data) - {f.name for f in fields(cls)})
+
+
 def load_json_config(path: str | os.PathLike, cls: type[T], what: str) -> T:
     """Read a JSON config into dataclass ``cls``; keys starting with ``_`` are comments.
     Missing file, bad JSON and unknown keys are one-line :class:`UsageError`s."""
@@ -62,9 +67,9 @@ def load_json_config(path: str | os.PathLike, cls: type[T], what: str) -> T:
     if not isinstance(raw, dict):
         raise UsageError(f"{path}: a {what} must be a JSON object")
     raw = {k: v for k, v in raw.items() if not k.startswith("_")}
-    unknown = set(raw) - {f.name for f in fields(cls)}  # type: ignore[arg-type]
+    unknown = unknown_keys(cls, raw)
     if unknown:
-        raise UsageError(f"{path}: unknown key(s) {', '.join(sorted(unknown))}")
+        raise UsageError(f"{path}: unknown key(s) {', '.join(unknown)}")
     try:
         return cls(**raw)
     except TypeError as exc:

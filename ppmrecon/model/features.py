@@ -40,13 +40,14 @@ features once per image and crop them afterwards (tiles, training patches);
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass
 from typing import Any, Mapping, NamedTuple
 
 import numpy as np
 import torch
 
 from ..buffers import N_ESTIMATES, BufferFile
+from ..fileio import unknown_keys
 from .guard import RELATIVE_FLOOR, image_scale, local_floor, median_of_estimates, passes_of
 
 N_BASE_CHANNELS = 3 * N_ESTIMATES + N_ESTIMATES + 3 + 3 + 1   # = 27 (paper 002 Sec. 4.3)
@@ -89,8 +90,7 @@ class FeatureConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "FeatureConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = unknown_keys(cls, data)
         if unknown:
             raise ValueError(f"unknown feature setting(s) {', '.join(unknown)}")
         for key, value in data.items():

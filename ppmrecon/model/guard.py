@@ -79,7 +79,7 @@ Constants (the ``GuardConfig`` defaults), measured with the shipped model on the
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from typing import Any, Mapping, NamedTuple
 
 import numpy as np
@@ -88,6 +88,7 @@ import torch.nn.functional as F
 
 from ..buffers import H_PASSES, BufferFile
 from ..errors import UsageError
+from ..fileio import unknown_keys
 
 #: eps = RELATIVE_FLOOR x the image's radiance scale: the smallest radiance the guard and
 #: the scale-free features tell apart from black (a relative, not absolute, floor).
@@ -201,8 +202,7 @@ class GuardConfig:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "GuardConfig":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = unknown_keys(cls, data)
         if unknown:
             raise ValueError(f"unknown guard setting(s) {', '.join(unknown)}")
         return cls(**dict(data))

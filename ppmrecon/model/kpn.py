@@ -23,6 +23,7 @@ import torch
 import torch.nn as nn
 
 from ..errors import UsageError
+from ..fileio import unknown_keys
 from .combine import logit_channels
 from .features import FeatureConfig
 from .guard import GuardConfig
@@ -71,11 +72,11 @@ class Preset:
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> "Preset":
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = unknown_keys(cls, data)
         if unknown:
             raise ValueError(f"unknown preset key(s) {', '.join(unknown)}")
-        missing = sorted(k for k in known - {"description", "final_kernel"} if k not in data)
+        missing = sorted(f.name for f in fields(cls)
+                         if f.name not in ("description", "final_kernel") and f.name not in data)
         if missing:
             raise ValueError(f"preset lacks {', '.join(missing)}")
         data = dict(data)
