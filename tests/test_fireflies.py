@@ -31,8 +31,9 @@ from ppmrecon.model import checkpoint as C
 from ppmrecon.model.cli import main
 from ppmrecon.model.combine import combine, term_bounds
 from ppmrecon.model.features import FeatureConfig, buffer_scales, from_buffer
-from ppmrecon.model.guard import (DEFAULT_ON, GuardConfig, find_outliers, guard_buffer, guard_estimates,
-                                  image_scale, local_floor, median3x3, output_band)
+from ppmrecon.model.guard import (DEFAULT_ON, GuardConfig, anchor_low_frequencies, find_outliers, finish,
+                                  gaussian_lowpass, guard_buffer, guard_estimates, image_scale, local_floor,
+                                  median3x3, output_band)
 from ppmrecon.model.infer import denoise
 
 SIZE, PASSES = 48, 64
@@ -285,7 +286,7 @@ def test_banded_output_stays_within_the_appendix_a_bounds(band, seed):
 
 def test_guarded_pipeline_converges_to_the_truth():
     """Noise ~ 1/sqrt(N) plus one pass of a fixed huge value E (adds E/N): guard + any
-    weights + band still converge (paper 002 Eq. 7)."""
+    weights + anchor + band still converge (paper 002 Eq. 7)."""
     _, clean = synthetic(size=24)
     x = torch.from_numpy(clean).permute(2, 0, 1)
     gen = torch.Generator().manual_seed(0)
@@ -298,12 +299,54 @@ def test_guarded_pipeline_converges_to_the_truth():
         var = (est.mean(1) * REL_PASS / n ** 0.5) ** 2
         var[:, 5, 5] += (3e4 / n) ** 2
         g = guard_estimates(est[None], var[None], torch.tensor([float(n)]), DEFAULT_ON)
-        out = output_band(combine(g.estimates[:, 0], g.estimates[:, 1:], logits),
-                          g.estimates[:, 0], g.estimates[:, 1:], DEFAULT_ON.band)
+        out = finish(combine(g.estimates[:, 0], g.estimates[:, 1:], logits),
+                     g.estimates[:, 0], g.estimates[:, 1:], DEFAULT_ON)
         errors.append(float((out[0] - x).abs().max()))
     # Not monotone: at N = 256 the event (117 at a pixel of ~0.5) is below g(256) = 256 x
     # its neighbourhood, so the guard lets it through; from there on it is averaged in.
     assert errors[-1] < 0.01 and errors[-1] < errors[-2] < errors[-3] < errors[-4], errors
+
+
+# ------------------------------------------------------------- low-frequency anchor
+
+def test_gaussian_lowpass_keeps_constants_and_has_its_width():
+    const = torch.full((1, 3, 9, 11), 0.7)
+    assert torch.allclose(gaussian_lowpass(const, 1.5), const, rtol=1e-6)
+    delta = torch.zeros(1, 1, 41, 41)
+    delta[0, 0, 20, 20] = 1.0
+    g = gaussian_lowpass(delta, 2.0)[0, 0].double()
+    assert float(g.sum()) == pytest.approx(1.0, rel=1e-6)
+    rows = torch.arange(41, dtype=torch.float64) - 20
+    assert float((g.sum(1) * rows ** 2).sum()) == pytest.approx(4.0, rel=0.02)     # variance sigma^2
+
+
+def test_anchor_takes_low_frequencies_from_z4_and_keeps_the_detail():
+    """A combination 3% too dark with a fine pattern on top, anchored to an unbiased ~z^4:
+    the 3% goes, the pattern (at the Nyquist frequency) stays."""
+    _, clean = synthetic(size=64)
+    x = torch.from_numpy(clean).permute(2, 0, 1)[None]
+    checker = torch.from_numpy((np.indices((64, 64)).sum(0) % 2 * 2 - 1).astype(np.float32))
+    image = 0.97 * x + 0.05 * checker
+    out = anchor_low_frequencies(image, x, 1.5)
+    to_np = lambda t: t[0].permute(1, 2, 0).numpy().astype(np.float64)   # noqa: E731
+    assert abs(to_np(out).mean() / clean.mean() - 1) < 2e-3 < abs(to_np(image).mean() / clean.mean() - 1)
+    assert relmse_blocks(to_np(out), clean) < 0.01 * relmse_blocks(to_np(image), clean)
+    kept = float(((out - x) * checker).mean() / 0.05)
+    assert kept > 0.95, kept
+
+
+def test_anchor_is_part_of_the_guard_and_can_be_switched_off():
+    _, clean = synthetic(size=24)
+    x = torch.from_numpy(clean).permute(2, 0, 1)[None]
+    z = x[:, None].repeat(1, 4, 1, 1, 1)
+    dark = 0.9 * x
+    assert torch.allclose(finish(dark, x, z, DEFAULT_ON), x, rtol=1e-5)          # band + anchor: the truth
+    no_anchor = finish(dark, 0.8 * x, z, replace(DEFAULT_ON, anchor=0.0))
+    assert torch.allclose(no_anchor, dark)                                        # within the band: kept
+    assert torch.equal(finish(-dark, x, z, GuardConfig()), torch.zeros_like(dark))  # guard off: clamp at 0
+    with pytest.raises(ValueError, match="'anchor'"):
+        GuardConfig(anchor=-1.0)
+    assert GuardConfig.from_dict({"enabled": True}).anchor == DEFAULT_ON.anchor > 0   # older checkpoints
 
 
 def test_guard_config_validation():

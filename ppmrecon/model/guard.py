@@ -22,7 +22,22 @@ What the guard does
    medians in that estimate. The variance test keeps genuinely bright, steady pixels
    (a small light seen directly): a mean made by one pass has sqrt(V)/Xbar ~ 1, one made
    by k comparable passes ~ 1/sqrt(k), a steady pixel after N passes ~ 1/sqrt(N).
-2. **Output band**: the combined value is clamped, per channel, into
+2. **Low-frequency anchor**: Eq. 6 takes its low frequencies from ~y. Every term is
+   ``~y_i + (~z^j_c - ~z^j_i)``; the bracket is a high-pass of ~z^j over the K x K window,
+   so below the window's frequency (K = 5 in the tiny preset) the output is a weighted
+   mean of ~y, the noisiest of the five inputs (smallest bandwidth, its own hit point A).
+   That is the "smooth error" of issue 12: on a glossy Cornell box the 8x8-block relMSE
+   of the output was 7x that of ~z^4. The anchor keeps the high frequencies of the
+   combination and takes the low ones from ~z^4, the widest (lowest-variance) chain:
+
+       yhat'_c = yhat_c + (G_sigma * (~z^4 - yhat))_c,
+
+   G_sigma a normalised Gaussian (``anchor`` = sigma in pixels). The bandwidth bias of
+   ~z^4 is a blur of the radiance at the scale of its radius, which G_sigma blurs
+   further anyway; the weights' noise-dependent bias (a log-L1-trained network leans to
+   the median of right-skewed photon noise, i.e. darker) is removed at the scales G_sigma
+   passes.
+3. **Output band**: the combined value is clamped, per channel, into
    ``[min_k Xhat_{k,c} / h, max_k Xhat_{k,c} * h]`` over the five guarded inputs at c
    (h >= 1); this replaces the old clamp at 0 (the band's floor is >= 0) and removes
    black dots: no pixel can fall below all five of its own estimates.
@@ -43,6 +58,10 @@ Let the inputs converge, X_{k,c}(N) -> x_c (finite) for every k and c, as N -> i
 * Combiner: Eq. 6 on the guarded inputs is a convex combination of terms
   ``Xhat-y_i + Xhat-z^j_c - Xhat-z^j_i`` that each converge to x_c, so it converges to
   x_c whatever the weights (Appendix A).
+* Anchor: G_sigma is a fixed linear filter with unit sum, and ``~z^4 - yhat -> 0`` at
+  every pixel, so the correction goes to 0 and ``yhat' -> x_c``. The anchored value may
+  leave Appendix A's interval of terms; the band below brings it back to within the five
+  estimates at c, which converge to x_c themselves (for h = 1 that alone is a proof).
 * Band: the term with i = c is ``~y_c`` itself, and ``min_k Xhat_{k,c} / h <= ~y_c <=
   max_k Xhat_{k,c} * h`` (radiance >= 0, h >= 1), so the band always overlaps the
   interval [smallest term, largest term] of Appendix A; clamping a point of that interval
@@ -74,6 +93,15 @@ Constants (the ``GuardConfig`` defaults), measured with the shipped model on the
   band, lower plain relMSE on six (the seventh, water at N = 256, loses one pixel
   where all five inputs carry a sparkle and the unbanded output happened to be 0).
 * ``floor = 1e-3``: radiance below 0.1% of the image's scale counts as black.
+* ``anchor = 1.5`` (sigma in pixels), additive: measured with ``benchmarks/bench_anchor.py``
+  on the first seven complete scenes of ``data/v2_cpu`` (all four N, seed 0; the model
+  shipped before issue 12's retraining). Against the best single input, relMSE / 8x8-block
+  relMSE geomean 0.66 / 1.20 without the anchor, 0.80 / 0.93 at sigma 1, 0.76 / 0.90 at
+  1.5, 0.71 / 0.88 at 3; worse than the best input in relMSE on 10 / 3 / 4 / 8 of 28
+  inputs. The anchor costs plain relMSE where ~z^4 is far off at high contrast (a small
+  light seen directly: its edge spreads) and gains most where Eq. 6 leans on ~y. An
+  energy-ratio form ``yhat (G ~z^4 + eps) / (G yhat + eps)`` was worse in block relMSE
+  (geomean 0.97, max 2.2).
 """
 
 from __future__ import annotations
@@ -179,11 +207,12 @@ class GuardConfig:
     min_rel_error: float = 0.5    # r0: only pixels with sqrt(V)/Xbar >= r0 can be outliers
     band: float = 1.0             # h >= 1: output within [min_k Xhat / h, max_k Xhat * h]; 0 = no band
     floor: float = RELATIVE_FLOOR  # eps = floor x image_scale
+    anchor: float = 1.5           # sigma (px) of the low-frequency anchor to ~z^4; 0 = off
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise ValueError(f"guard setting 'enabled' must be true or false, got {self.enabled!r}")
-        for key in ("threshold", "growth", "min_rel_error", "band", "floor"):
+        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"guard setting '{key}' must be a finite number, got {value!r}")
@@ -192,6 +221,8 @@ class GuardConfig:
                              "(growth > 0 is what makes the guard consistent)")
         if self.band != 0 and self.band < 1:
             raise ValueError(f"guard setting 'band' must be 0 (off) or >= 1, got {self.band}")
+        if self.anchor < 0:
+            raise ValueError(f"guard setting 'anchor' must be 0 (off) or a blur width > 0 in pixels, got {self.anchor}")
 
     def factor(self, passes: torch.Tensor) -> torch.Tensor:
         """g(N) = threshold * N^growth for pass counts (B,)."""
@@ -323,3 +354,42 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
     if band != 1:
         lo, hi = lo / band, hi * band
     return torch.minimum(torch.maximum(image, lo), hi)
+
+
+# ------------------------------------------------------------- low-frequency anchor
+
+def gaussian_lowpass(x: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Separable Gaussian blur of x (B, C, H, W), standard deviation ``sigma`` pixels,
+    truncated at 3 sigma and renormalised, replicate padding (a linear, mean-preserving
+    low-pass whose weights do not depend on the image). Differentiable."""
+    radius = max(1, math.ceil(3.0 * sigma))
+    t = torch.arange(-radius, radius + 1, dtype=x.dtype, device=x.device)
+    g = torch.exp(-0.5 * (t / sigma) ** 2)
+    g = g / g.sum()
+    c = x.shape[1]
+    x = F.pad(x, (radius, radius, radius, radius), mode="replicate")
+    x = F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(x, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
+def anchor_low_frequencies(image: torch.Tensor, anchor: torch.Tensor, sigma: float) -> torch.Tensor:
+    """``image + G_sigma * (anchor - image)``: the high frequencies of ``image`` over the low
+    frequencies of ``anchor`` (both (B, 3, H, W))."""
+    return image + gaussian_lowpass(anchor - image, sigma)
+
+
+def finish(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:
+    """What follows Eq. 6 for a combined image (B, 3, H, W) of the (guarded) inputs y
+    (B, 3, H, W), z (B, 4, 3, H, W): with the guard on, the low-frequency anchor to ~z^4
+    (when ``cfg.anchor > 0``), then the output band; with it off, only the clamp at 0.
+
+    Whole images (or whole training patches): the anchor's blur has no tile halo.
+    Differentiable, so training sees exactly what inference produces.
+    """
+    if not cfg.enabled:
+        # Terms y_i + z_c - z_i can be negative, so can their convex combination; radiance
+        # is not, and projecting onto [0, inf) never moves the estimate away from the truth.
+        return image.clamp(min=0.0)
+    if cfg.anchor > 0:
+        image = anchor_low_frequencies(image, z[:, -1], cfg.anchor)
+    return output_band(image, y, z, cfg.band)

@@ -27,7 +27,7 @@ from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
-from .guard import GuardConfig, guard_buffer, output_band
+from .guard import GuardConfig, finish, guard_buffer
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -111,8 +111,8 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
 
     _, _, height, width = inputs.y.shape
     guard = model.guard if guard is None else guard
-    return _denoise(source, height, width, model, tile, device, progress, precision, workers,
-                    guard.band if guard.enabled else 0.0)
+    combined = _denoise(source, height, width, model, tile, device, progress, precision, workers)
+    return _finish(combined, inputs.y[0], inputs.z[0], guard)
 
 
 def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
@@ -138,15 +138,28 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
         return from_buffer(buf, model.features, (rows, cols), scales)
 
     height, width = buf.shape
-    return _denoise(source, height, width, model, tile, device, progress, precision, workers,
-                    guard.band if guard.enabled else 0.0)
+    combined = _denoise(source, height, width, model, tile, device, progress, precision, workers)
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)   # (5, 3, H, W)
+    return _finish(combined, est[0], est[1:], guard)
+
+
+def _finish(combined: Denoised, y: torch.Tensor, z: torch.Tensor, guard: GuardConfig) -> Denoised:
+    """The whole-image steps after Eq. 6 (:func:`..guard.finish`: anchor, band, or the clamp
+    at 0) on the raw combination; y (3, H, W) and z (4, 3, H, W) are the guarded inputs."""
+    image = torch.from_numpy(combined.rgb).permute(2, 0, 1)[None]
+    with torch.no_grad():
+        image = finish(image, y[None].float(), z[None].float(), guard)
+    if not torch.isfinite(image).all():
+        raise NonFiniteOutputError("the combination produced NaN/Inf (radiance beyond float32 range?)")
+    return Denoised(image[0].permute(1, 2, 0).contiguous().numpy(), combined.weights_per_z)
 
 
 def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int | None,
              device: str | torch.device, progress: ProgressFn | None, precision: str,
-             workers: int | None, band: float) -> Denoised:
-    """The tile loop. On the CPU, ``workers`` threads (default: torch's thread count)
-    denoise tiles side by side, each op single-threaded; on a GPU, one tile at a time."""
+             workers: int | None) -> Denoised:
+    """The tile loop: Eq. 6 per tile, unclamped (:func:`_finish` follows on the whole
+    image). On the CPU, ``workers`` threads (default: torch's thread count) denoise tiles
+    side by side, each op single-threaded; on a GPU, one tile at a time."""
     device = torch.device(device)
     precision = resolve_precision(precision, device)
     model = model.to(device).eval()
@@ -172,11 +185,7 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
             except NonFiniteLogitsError:
                 raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
                                            "or does not fit this input") from None
-            # Terms y_i + z_c - z_i can be negative, so can their convex combination. Radiance
-            # is not: projecting onto [0, inf) never moves the estimate away from a
-            # nonnegative truth; the guard's band stays within Appendix A's bounds
-            # (guard.output_band). Either way the result stays consistent.
-            image = output_band(out.image, y, z, band)
+            image = out.image
         keep = (slice(None), slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
         rgb[:, y0:y1, x0:x1] = image[0][keep].cpu()                # tiles are disjoint: no lock needed
         weights[:, y0:y1, x0:x1] = out.weights_per_z[0][keep].cpu()

@@ -32,7 +32,7 @@ from ..metrics import relmse
 from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
 from ..model.features import FeatureConfig, ModelInputs
-from ..model.guard import GuardConfig, output_band
+from ..model.guard import GuardConfig, finish
 from ..model.infer import denoise_inputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
@@ -144,8 +144,8 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             feats, y, z, ref = (t.to(dev) for t in sampler.batch(cfg.batch))
             logits = model(feats)
             pred = combine(y, z, logits, method="unfold")
-            if guard.enabled:     # the band inference applies (Eq. 8 clips at 0 itself)
-                pred = output_band(pred, y, z, guard.band)
+            if guard.enabled:     # anchor + band as inference applies them (Eq. 8 clips at 0 itself)
+                pred = finish(pred, y, z, guard)
             loss = relative_log_l1(pred, ref)
             if cfg.lowfreq_weight:
                 loss = loss + cfg.lowfreq_weight * block_log_l1(pred, ref)
