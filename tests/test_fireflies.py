@@ -429,7 +429,7 @@ def test_scale_free_features_need_the_radiance_scale_for_crops():
 
 # ------------------------------------------------------------------------ training
 
-@pytest.mark.parametrize("name", ["cpu", "cpu_small", "cpu_paper"])
+@pytest.mark.parametrize("name", ["cpu", "cpu_small", "cpu_paper", "cpu_v2"])
 def test_shipped_training_configs_train_with_the_guard(name):
     from pathlib import Path
 

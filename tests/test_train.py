@@ -21,6 +21,7 @@ choose_variant()
 import mitsuba as mi  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
+from ppmrecon.model import checkpoint as C  # noqa: E402
 from ppmrecon.model import cli as denoise_cli  # noqa: E402
 from ppmrecon.render.eye import trace_eye  # noqa: E402
 from ppmrecon.train import cli as train_cli  # noqa: E402
@@ -290,4 +291,26 @@ def test_fit_with_the_block_loss_term_and_a_bad_weight(tiny_data, tmp_path):
     assert np.isfinite(json.loads((run / "history.json").read_text())[-1]["loss"])
     cfg.write_text(json.dumps({"lowfreq_weight": -1}))
     with pytest.raises(UsageError, match="lowfreq_weight must be a number >= 0"):
+        train_cli.main(["fit", str(root), "--out", str(tmp_path / "run2"), "--config", str(cfg), "--quiet"])
+
+
+def test_fit_selects_by_per_image_ratio_on_every_pass_count(tiny_data, tmp_path):
+    """select "ratio" + val_passes 0: validation covers every N of the data set and
+    best.pt is the epoch with the lowest geometric-mean ratio to the best single input."""
+    root, _ = tiny_data
+    cfg = tmp_path / "train.json"
+    cfg.write_text(json.dumps({"preset": "tiny", "select": "ratio", "val_passes": 0, "epochs": 2,
+                               "steps_per_epoch": 2, "batch": 2, "lr": 1e-3, "guard": {"enabled": True}}))
+    run = tmp_path / "run"
+    assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg), "--quiet"]) == 0
+    history = json.loads((run / "history.json").read_text())
+    manifest = json.loads((root / "manifest.json").read_text())
+    n_val = sum(len(s["inputs"]) for s in manifest["scenes"] if s["split"] == "val")
+    assert n_val > 1
+    ratios = [h["val"]["image_ratio"] for h in history]
+    assert all(r > 0 and np.isfinite(r) for r in ratios)
+    best_epoch = int(np.argmin(ratios)) + 1
+    assert C.load_checkpoint(run / "best.pt").meta["epochs"] == best_epoch
+    cfg.write_text(json.dumps({"select": "best"}))
+    with pytest.raises(UsageError, match="select must be one of relmse, ratio"):
         train_cli.main(["fit", str(root), "--out", str(tmp_path / "run2"), "--config", str(cfg), "--quiet"])

@@ -39,6 +39,7 @@ from .dataset import PatchSampler, Sample, load_split
 from .loss import block_log_l1, relative_log_l1
 
 STATE = "train_state.pt"
+SELECT = ("relmse", "ratio")
 MODEL = "model.pt"
 BEST = "best.pt"
 HISTORY = "history.json"
@@ -58,8 +59,12 @@ class TrainConfig:
     epochs: int = 20
     steps_per_epoch: int = 100
     seed: int = 0
-    #: Validate on this input pass count (None: the middle one of the data set).
+    #: Validate on this input pass count (None: the middle one of the data set; 0: every one).
     val_passes: int | None = None
+    #: What picks ``best.pt``: "relmse" (mean validation relMSE of the output) or "ratio"
+    #: (geometric mean over validation images of output / best single input relMSE, so
+    #: that no bright scene decides alone: issue 12 targets per-image ratios).
+    select: str = "relmse"
     grad_clip: float = 1.0
     #: Weight of the 8x8 block-mean term (:func:`.loss.block_log_l1`) added to Eq. 8.
     lowfreq_weight: float = 0.0
@@ -69,24 +74,31 @@ class TrainConfig:
         cfg = load_json_config(path, cls, "training config")
         if not (isinstance(cfg.lowfreq_weight, (int, float)) and 0.0 <= cfg.lowfreq_weight < math.inf):
             raise UsageError(f"{path}: lowfreq_weight must be a number >= 0, got {cfg.lowfreq_weight!r}")
+        if cfg.select not in SELECT:
+            raise UsageError(f"{path}: select must be one of {', '.join(SELECT)}, got {cfg.select!r}")
         return cfg
 
 
 def _validate(model: torch.nn.Module, samples: list[Sample], device: torch.device) -> dict[str, float]:
-    """Mean relMSE over the validation images of the output and of each single input."""
+    """Mean relMSE over the validation images of the output and of each single input, and
+    ``image_ratio``: the geometric mean over images of output / best single input."""
     if not samples:
         return {}
     model.eval()
     out = {"output": 0.0, **{name: 0.0 for name in ESTIMATES}}
+    log_ratio = 0.0
     for s in samples:
         inputs = ModelInputs(s.features[None], s.y[None], s.z[None])
         rgb = denoise_inputs(inputs, model, tile=None, device=device).rgb
         ref = s.reference.permute(1, 2, 0).numpy()
-        out["output"] += relmse(rgb, ref)
-        singles = [s.y] + list(s.z)
-        for name, img in zip(ESTIMATES, singles):
-            out[name] += relmse(img.permute(1, 2, 0).numpy(), ref)
+        mine = relmse(rgb, ref)
+        out["output"] += mine
+        singles = [relmse(img.permute(1, 2, 0).numpy(), ref) for img in [s.y] + list(s.z)]
+        for name, value in zip(ESTIMATES, singles):
+            out[name] += value
+        log_ratio += math.log(max(mine, 1e-30) / max(min(singles), 1e-30))
     out = {k: v / len(samples) for k, v in out.items()}
+    out["image_ratio"] = math.exp(log_ratio / len(samples))
     out["best_single"] = min(out[name] for name in ESTIMATES)
     out["best_single_name"] = min(ESTIMATES, key=lambda n: out[n])  # type: ignore[assignment]
     out["ratio"] = out["output"] / max(out["best_single"], 1e-12)
@@ -110,8 +122,8 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     train_samples = load_split(data, "train", features, warn=warn, guard=guard)
     config = json.loads((Path(data) / "manifest.json").read_text()).get("config", {})
     passes = sorted(config.get("input_passes", []))
-    val_passes = cfg.val_passes or (passes[len(passes) // 2] if passes else None)
-    val_samples = load_split(data, "val", features, passes=val_passes, warn=warn, guard=guard)
+    val_passes = cfg.val_passes if cfg.val_passes is not None else (passes[len(passes) // 2] if passes else None)
+    val_samples = load_split(data, "val", features, passes=val_passes or None, warn=warn, guard=guard)
     sampler = PatchSampler(train_samples, cfg.patch, features, augment=True, seed=cfg.seed)
 
     model = build(cfg.preset, features, guard).to(dev)
@@ -133,7 +145,8 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     model.train()
 
     n_params = sum(p.numel() for p in model.parameters())
-    best = min((h["val"]["output"] for h in history if h.get("val")), default=math.inf)
+    key = "output" if cfg.select == "relmse" else "image_ratio"
+    best = min((h["val"][key] for h in history if h.get("val") and key in h["val"]), default=math.inf)
     t_start = time.perf_counter()
     progress = Progress(f"ppmrecon-train {cfg.preset} ({n_params} params)", total=cfg.epochs * cfg.steps_per_epoch,
                         quiet=quiet)
@@ -167,14 +180,15 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
                 "data": str(data), "train_images": len(train_samples), "val_images": len(val_samples),
                 "val": {k: v for k, v in val.items()}, "train_seconds": sum(h["seconds"] for h in history)}
         save_checkpoint(out / MODEL, model, meta)
-        if val and val["output"] < best:
-            best = val["output"]
+        if val and val[key] < best:
+            best = val[key]
             save_checkpoint(out / BEST, model, meta)
         torch.save({"optimizer": opt.state_dict(), "epoch": epoch + 1}, out / STATE)
         write_json(out / HISTORY, history)
         if not quiet:
             progress.close()
-            v = f" val relMSE {val['output']:.4f} vs best input {val['best_single']:.4f} ({val['best_single_name']})" if val else ""
+            v = (f" val relMSE {val['output']:.4f} vs best input {val['best_single']:.4f} ({val['best_single_name']}),"
+                 f" per image {val['image_ratio']:.3f}x") if val else ""
             print(f"epoch {epoch + 1}/{cfg.epochs}: loss {record['loss']:.4f}{v} [{record['seconds']:.1f}s]", flush=True)
         if max_seconds is not None and time.perf_counter() - t_start > max_seconds:
             break
