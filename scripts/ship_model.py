@@ -35,10 +35,13 @@ def main() -> None:
     data = Path(meta["data"])
     manifest = json.loads((data / "manifest.json").read_text())
     cfg = manifest["config"]
-    scenes = manifest["scenes"]
+    planned = manifest["scenes"]
+    scenes = [s for s in planned if (data / s["id"] / "reference.exr").is_file()]   # complete ones
     n_train = sum(s["split"] == "train" for s in scenes)
     n_val = len(scenes) - n_train
     families = sorted({s["family"] for s in scenes})
+    worker_seconds = sum(s.get("seconds", 0.0) for s in scenes)
+    agreements = sorted(s["agreement"]["relmse"] for s in scenes if s.get("agreement"))
     epochs = meta["epochs"]
     train_seconds = sum(h["seconds"] for h in history[:epochs])
     v = meta["val"]
@@ -58,7 +61,8 @@ def main() -> None:
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
     ax.legend(fontsize=8)
-    ax.set_title(f"{meta['preset']} on {data.name}: validation at N = {history[-1]['val_passes']}", fontsize=9)
+    val_n = history[-1]["val_passes"] or "every N"
+    ax.set_title(f"{meta['preset']} on {data.name}: validation at N = {val_n}", fontsize=9)
     fig.tight_layout()
     fig.savefig(DEFAULT_MODEL.with_name("default_validation.png"), dpi=110)
 
@@ -71,25 +75,35 @@ def main() -> None:
         f"| architecture | preset `{meta['preset']}`: {ckpt.model.preset.layers} conv layers, "
         f"{ckpt.model.preset.filters} filters {ckpt.model.preset.kernel}x{ckpt.model.preset.kernel}, "
         f"window K = {ckpt.model.preset.window}, {parameter_count(ckpt.model)} parameters |",
-        f"| inputs | 27 channels (5 estimates, 5 variances, albedo, normal, depth), SPPM only |",
-        f"| data set | `{data}`: {len(scenes)} generated scenes ({', '.join(families)}), {n_train} train / "
-        f"{n_val} validation (split by scene), {cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
+        f"| inputs | {ckpt.model.features.n_channels()} channels (5 estimates, 5 variances, albedo, normal, depth; "
+        f"optional features {ckpt.model.features.to_dict()}), SPPM buffer files |",
+        f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; applied in training as at inference) |",
+        f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
+        f"({', '.join(families)}), {n_train} train / {n_val} validation (split by scene), "
+        f"{cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
         f"| inputs per scene | N = {', '.join(map(str, cfg['input_passes']))} passes x seeds {cfg['seeds']}, "
         f"{cfg['photons']} photons/pass; {meta['train_images']} training images |",
-        f"| references | single-bandwidth SPPM, {cfg['reference_passes']} passes x {cfg['reference_photons']} photons |",
-        f"| data generation | {manifest.get('generation_seconds', 0) / 60:.1f} min wall on 2 shared CPU cores |",
+        f"| references | single-bandwidth SPPM, {cfg.get('references', 1)} independent render(s) of "
+        f"{cfg['reference_passes']} passes x {cfg['reference_photons']} photons"
+        + (f"; agreement of the two (relMSE of one against the other; the mean's own error is about a quarter): "
+           f"median {agreements[len(agreements) // 2]:.2g}, worst {agreements[-1]:.2g}" if agreements else "") + " |",
+        f"| data generation | {worker_seconds / 3600:.1f} worker-hours on a shared 2-core CPU "
+        f"(sum of the complete scenes' render times) |",
         f"| training | Adam lr {tc['lr']}, batch {tc['batch']} x {tc['patch']}x{tc['patch']} patches, "
         f"{tc['steps_per_epoch']} steps/epoch, {epochs} epochs (checkpoint `{args.checkpoint}`), "
         f"{train_seconds / 60:.1f} min wall on 2 shared CPU cores, D4 augmentation |",
-        f"| validation (N = {history[-1]['val_passes']}) | relMSE {v['output']:.4f} vs best single input "
-        f"{v['best_single']:.4f} (~{v['best_single_name']}): {v['ratio']:.2f}x |", "",
+        f"| validation (N = {val_n}) | mean relMSE {v['output']:.4f} vs best single input "
+        f"{v['best_single']:.4f} (~{v['best_single_name']}): {v['ratio']:.2f}x"
+        + (f"; per image (geometric mean of ours / that image's best input): {v['image_ratio']:.3f}x"
+           if "image_ratio" in v else "") + f"; `best.pt` picked by `{tc.get('select', 'relmse')}` |", "",
         "![validation curve](default_validation.png)", "",
         "| epoch | train loss (Eq. 8) | validation relMSE | best single input |", "|---|---|---|---|",
     ]
     for h in history:
         lines.append(f"| {h['epoch']} | {h['loss']:.4f} | {h['val']['output']:.4f} | {h['val']['best_single']:.4f} |")
-    lines += ["", "Limits: trained on SPPM inputs only, on small generated scenes at 96x96; "
-              "the literature scenes were never seen. See benchmarks/results/quality.md for held-out numbers."]
+    lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
+              f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
+              "benchmarks/results/quality.md, curves.md, guard.md, anchor.md."]
     DEFAULT_MODEL.with_name("default.md").write_text("\n".join(lines) + "\n")
     print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
 
