@@ -42,15 +42,25 @@ def positive_int(text: str) -> int:
     return value
 
 
-def positive_float(text: str) -> float:
-    """argparse type: a finite float > 0."""
+def _finite_float(text: str, minimum: float, inclusive: bool) -> float:
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"'{text}' is not a number") from None
-    if not (value > 0 and value < float("inf")):
-        raise argparse.ArgumentTypeError(f"must be a positive number, got {text}")
+    if not ((value >= minimum if inclusive else value > minimum) and value < float("inf")):
+        kind = "a number >= 0" if inclusive else "a positive number"
+        raise argparse.ArgumentTypeError(f"must be {kind}, got {text}")
     return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite float > 0."""
+    return _finite_float(text, 0.0, inclusive=False)
+
+
+def nonnegative_float(text: str) -> float:
+    """argparse type: a finite float >= 0."""
+    return _finite_float(text, 0.0, inclusive=True)
 
 
 class Progress:

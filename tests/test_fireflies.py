@@ -158,6 +158,13 @@ def test_cli_guard_on_with_the_shipped_model(tmp_path, capsys):
     for r, c in FIREFLIES:
         assert np.all(np.abs(outs["on"][r, c] - clean[r, c]) <= TOL * clean[r, c])
         assert outs["model"][r, c].mean() > 100 * clean[r, c].mean()
+    dst = tmp_path / "out_no_anchor.exr"
+    assert main([str(src), "-o", str(dst), "--anchor", "0", "--quiet", "--threads", "1"]) == 0
+    no_anchor, header = B.read_rgb(dst)
+    assert header["ppmrecon.guard.anchor"] == 0.0 and not np.array_equal(no_anchor, outs["on"])
+    assert B.read_rgb(tmp_path / "out_on.exr")[1]["ppmrecon.guard.anchor"] == DEFAULT_ON.anchor
+    with pytest.raises(SystemExit):
+        main([str(src), "-o", str(dst), "--anchor", "-1"])
 
 
 # ------------------------------------------------------------------ the input guard

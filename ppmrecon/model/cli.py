@@ -20,13 +20,14 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 from typing import Sequence
 
 import torch
 
 from ..buffers import ESTIMATES, read_buffers, write_rgb
-from ..cli_common import ArgumentParser, Progress, positive_int, run_main
+from ..cli_common import ArgumentParser, Progress, nonnegative_float, positive_int, run_main
 from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
@@ -40,6 +41,7 @@ H_DENOISER = "ppmrecon.denoiser"
 H_MODEL = "ppmrecon.model"
 H_DENOISE_SECONDS = "ppmrecon.denoise_seconds"
 H_GUARD = "ppmrecon.guard"
+H_ANCHOR = "ppmrecon.guard.anchor"
 
 NO_MODEL_HINT = ("no model given and no default model is installed; pass --model CKPT "
                  "(train one with `ppmrecon-train`, or make an untrained one with "
@@ -77,6 +79,9 @@ def build_parser() -> ArgumentParser:
                         "the checkpoint's guard settings if it has them), 'model' = as the checkpoint "
                         "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
                         "(default there: off)")
+    p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
+                   help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
+                        "0 = off (default: the guard's, 1.5)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar or summary")
     g = p.add_argument_group("making an untrained model")
     g.add_argument("--init-checkpoint", metavar="CKPT",
@@ -163,6 +168,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         progress.update(done, force=done == total)
 
     guard = guard_choice(args.guard or "on", model.guard)
+    if args.anchor is not None:
+        guard = replace(guard, anchor=args.anchor)
     start = time.perf_counter()
     try:
         result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision,
@@ -176,7 +183,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         extra = {f"{WEIGHT_LAYER}.{name}": result.weights_per_z[j] for j, name in enumerate(ESTIMATES[1:])}
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
-                   H_GUARD: "on" if guard.enabled else "off"})
+                   H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape
