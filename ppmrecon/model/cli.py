@@ -20,7 +20,6 @@ not tuned on: benchmarks/results/guard.md).
 from __future__ import annotations
 
 import argparse
-import glob
 import sys
 import time
 from pathlib import Path
@@ -29,7 +28,7 @@ from typing import Sequence
 import torch
 
 from ..buffers import ESTIMATES, read_buffers, write_rgb
-from ..cli_common import ArgumentParser, Progress, positive_int, run_main
+from ..cli_common import ArgumentParser, Progress, expand_paths, positive_int, run_main
 from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
@@ -109,27 +108,9 @@ def default_output(path: Path) -> Path:
 
 
 def expand_inputs(items: Sequence[str]) -> list[Path]:
-    """Input arguments -> files, in order, each once. An argument with glob characters
-    that is not itself a file is a pattern (sorted matches, without ``*_denoised.exr``
-    outputs of earlier runs); a pattern that matches nothing is a usage error."""
-    out: list[Path] = []
-    for item in items:
-        if glob.has_magic(item) and not Path(item).exists():
-            matches = [Path(m) for m in sorted(glob.glob(item))
-                       if not Path(m).stem.endswith(DENOISED_SUFFIX)]
-            if not matches:
-                raise UsageError(f"{item}: no buffer file matches this pattern")
-            out += matches
-        else:
-            out.append(Path(item))
-    seen: set[Path] = set()
-    unique = []
-    for path in out:
-        key = path.resolve()
-        if key not in seen:
-            seen.add(key)
-            unique.append(path)
-    return unique
+    """Input arguments -> buffer files (see :func:`.cli_common.expand_paths`); patterns
+    leave out ``*_denoised.exr`` outputs of earlier runs."""
+    return expand_paths(items, "buffer file", exclude=lambda p: p.stem.endswith(DENOISED_SUFFIX))
 
 
 def guard_choice(choice: str, model_guard: GuardConfig) -> GuardConfig:
