@@ -1,7 +1,7 @@
 """``ppmrecon-compare``: score RGB or buffer EXRs against a reference (SPEC section 7).
 
     ppmrecon-compare REF.exr FILE.exr ['PATTERN*.exr' ...] [--layers y,z1,...]
-                     [--json [OUT.json]] [--plot OUT.png] [--crop X,Y,W,H]
+                     [--json [OUT.json]] [--plot OUT.png] [--crop X,Y,W,H] [--target RELMSE]
 
 For every file (an R,G,B image such as a denoised output or a ``--single`` render, or a
 buffer file, whose five estimates are scored one by one unless ``--layers`` picks some)
@@ -16,7 +16,9 @@ as a table on stdout, as JSON with ``--json`` (on stdout instead of the table, o
 file), and with ``--plot`` as a PNG of relMSE against passes (``ppmrecon.passes`` of
 each file's header) on log-log axes with the least-squares slope of each series (one
 series per method and layer), plus ``OUT_crops.png``, the same crop of the reference
-and of every scored image side by side. A reference at an integer multiple of a file's
+and of every scored image side by side. ``--target X`` answers "how many passes for
+relMSE X": per series the fewest measured passes that reach it and where the fitted
+line crosses it. A reference at an integer multiple of a file's
 resolution is area-averaged down to it; other sizes (another aspect ratio, a fractional
 factor, a smaller reference) are refused in one line.
 """
@@ -35,7 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from . import buffers as B
-from .cli_common import ArgumentParser, expand_paths, run_main
+from .cli_common import ArgumentParser, expand_paths, positive_float, run_main
 from .errors import UsageError
 from .fileio import atomic_write, write_text
 from .metrics import block_means, luminance, luminance_ratio, relmse, relmse_blocks, relmse_trimmed
@@ -108,9 +110,12 @@ def score(path: Path, layer: str, img: np.ndarray, ref: np.ndarray, header: dict
         luminance_ratio=_finite_or_none(luminance_ratio(img, ref)))
 
 
-def fit_slopes(scores: Sequence[Score]) -> list[dict[str, Any]]:
+def fit_slopes(scores: Sequence[Score], target: float | None = None) -> list[dict[str, Any]]:
     """Per series with at least two pass counts: the least-squares slope of log relMSE
-    against log passes (-1 is the Monte Carlo rate; PPM's bias makes it shallower)."""
+    against log passes (-1 is the Monte Carlo rate; PPM's bias makes it shallower).
+    With ``target``: ``reached_at``, the fewest measured passes whose relMSE is at most
+    the target, and ``passes_for_target``, where the fitted line crosses it (None if the
+    error does not fall)."""
     fits = []
     for series in dict.fromkeys(s.series for s in scores):
         pts = [(s.passes, s.relmse) for s in scores if s.series == series and s.passes and s.relmse > 0]
@@ -118,8 +123,14 @@ def fit_slopes(scores: Sequence[Score]) -> list[dict[str, Any]]:
             continue
         x, y = np.log([p for p, _ in pts]), np.log([e for _, e in pts])
         slope, intercept = np.polyfit(x, y, 1)
-        fits.append({"series": series, "slope": float(slope), "intercept": float(intercept),
-                     "points": len(pts), "passes": [int(min(p for p, _ in pts)), int(max(p for p, _ in pts))]})
+        fit = {"series": series, "slope": float(slope), "intercept": float(intercept),
+               "points": len(pts), "passes": [int(min(p for p, _ in pts)), int(max(p for p, _ in pts))]}
+        if target is not None:
+            fit["target"] = target
+            fit["reached_at"] = min((p for p, e in pts if e <= target), default=None)
+            fit["passes_for_target"] = (float(np.exp((np.log(target) - intercept) / slope))
+                                        if slope < 0 else None)
+        fits.append(fit)
     return fits
 
 
@@ -139,6 +150,12 @@ def table(scores: Sequence[Score], fits: Sequence[dict[str, Any]]) -> str:
     for f in fits:
         lines.append(f"slope of log relMSE vs log passes, {f['series']}: {f['slope']:.3f} "
                      f"({f['points']} files, passes {f['passes'][0]}..{f['passes'][1]})")
+        if "target" in f:
+            need = f["passes_for_target"]
+            fitted = f"fit: ~{need:.0f} passes" if need is not None else "fit: never (the error does not fall)"
+            beyond = " (extrapolated)" if need is not None and need > f["passes"][1] else ""
+            measured = f"measured: {f['reached_at']} passes" if f["reached_at"] else "not reached in the files"
+            lines.append(f"  relMSE {f['target']:g}: {measured}; {fitted}{beyond}")
     return "\n".join(lines)
 
 
@@ -243,7 +260,8 @@ def build_parser() -> ArgumentParser:
                     "relMSE without the 0.1% largest pixel errors, and the mean luminance ratio.",
         epilog="examples:\n"
                "  ppmrecon-compare ref.exr out_denoised.exr\n"
-               "  ppmrecon-compare ref.exr 'out_p*.exr' --layers z1 --plot errors.png --json errors.json")
+               "  ppmrecon-compare ref.exr 'out_p*.exr' --layers z1 --plot errors.png --json errors.json\n"
+               "  ppmrecon-compare ref.exr 'out_p*_denoised.exr' --target 0.01   # passes for relMSE 0.01")
     p.add_argument("reference", type=Path, metavar="REF.exr",
                    help="reference R,G,B EXR, the files' size or an integer multiple of it")
     p.add_argument("files", nargs="+", metavar="FILE.exr",
@@ -254,6 +272,9 @@ def build_parser() -> ArgumentParser:
                    help="JSON instead of the table on stdout, or (with a file name) into that file as well")
     p.add_argument("--plot", type=Path, default=None, metavar="OUT.png",
                    help="PNG of relMSE against passes (log-log, fitted slopes) and OUT_crops.png")
+    p.add_argument("--target", type=positive_float, default=None, metavar="RELMSE",
+                   help="also say how many passes each series needs for this relMSE: the fewest measured, "
+                        "and where the fitted log-log line crosses it")
     p.add_argument("--crop", default=None, metavar="X,Y,W,H",
                    help="crop of the sheet in pixels (default: the central square of half the shorter side)")
     return p
@@ -281,7 +302,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             scores.append(score(path, layer, img, fitted[shape], header))
             images.append(img)
             refs.append(fitted[shape])
-    fits = fit_slopes(scores)
+    fits = fit_slopes(scores, args.target)
     if args.plot is not None:
         _crop_box(args.crop, images[0].shape[:2])  # a bad --crop fails before anything is written
         if not any(s.passes for s in scores):

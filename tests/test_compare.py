@@ -82,12 +82,17 @@ def test_slope_and_plots(tmp_path, capsys):
     for n in (4, 16, 64):
         write(tmp_path / f"run_p{n:04d}.exr", ref * (1 + 0.3 / np.sqrt(n)), passes=n, method="fppm")
     plot = tmp_path / "err.png"
+    err16 = (((0.3 / 4) * ref) ** 2).mean(-1) / (ref.mean(-1) ** 2 + 0.01)
+    target = 0.5 * float(err16.mean())  # half the 16-pass error: 32 passes on the fitted line
     assert compare([str(tmp_path / "ref.exr"), str(tmp_path / "run_p*.exr"), "--plot", str(plot),
-                    "--json", str(tmp_path / "err.json")]) == 0
+                    "--json", str(tmp_path / "err.json"), "--target", repr(target)]) == 0
     fit, = json.loads((tmp_path / "err.json").read_text())["fits"]
     assert fit["series"] == "fppm rgb" and fit["points"] == 3
     assert fit["slope"] == pytest.approx(-1.0, abs=1e-4)
-    assert "slope of log relMSE vs log passes, fppm rgb: -1.000" in capsys.readouterr().out
+    assert fit["passes_for_target"] == pytest.approx(32.0, rel=1e-3) and fit["reached_at"] == 64
+    out = capsys.readouterr().out
+    assert "slope of log relMSE vs log passes, fppm rgb: -1.000" in out
+    assert "measured: 64 passes; fit: ~32 passes" in out
     for png in (plot, tmp_path / "err_crops.png"):
         assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 

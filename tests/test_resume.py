@@ -231,3 +231,13 @@ def test_resume_keeps_its_settings(tmp_path, capsys, rendered):
     _refused(capsys, ["--resume", str(out), "--passes", "1"], "does not fit", "mean.0")
     assert {k: v for k, v in _snapshot(tmp_path).items() if not k.endswith(".npz")} == \
         {k: v for k, v in before.items() if not k.endswith(".npz")}
+
+
+def test_single_baseline_resumes_too(tmp_path):
+    """The --single baseline (a plain R,G,B file) continues like the buffer renders."""
+    a, full = tmp_path / "a.exr", tmp_path / "full.exr"
+    assert render(BASE + ["--single", "--passes", "2", "-o", str(a)]) == 0
+    assert render(["--resume", str(a), "--passes", "1", "-q"]) == 0
+    assert render(BASE + ["--single", "--passes", "3", "-o", str(full)]) == 0
+    (ra, ha), (rf, hf) = B.read_rgb(a), B.read_rgb(full)
+    assert np.array_equal(ra, rf) and ha[B.H_PASSES] == hf[B.H_PASSES] == 3

@@ -141,6 +141,18 @@ def knn_radius(points: GatherPoints, photon_p: mi.Point3f, k: int, r_lo: float, 
     return out
 
 
+def _narrow(values: np.ndarray) -> np.ndarray:
+    """Unsigned counts in the smallest unsigned type that holds them (lossless): CPPM's
+    per-cell photon counts are mostly small, and they are most of a state file."""
+    if values.dtype.kind != "u" or values.size == 0:
+        return values
+    top = int(values.max())
+    for dtype in (np.uint8, np.uint16):
+        if top <= np.iinfo(dtype).max:
+            return values.astype(dtype)
+    return values
+
+
 class DeferredInterrupt:
     """Context manager: while active (main thread only, and only where Ctrl-C has its
     default handler), the first SIGINT sets ``requested`` (and calls ``notify(pass)``)
@@ -381,7 +393,7 @@ class Renderer:
         for name in ("albedo", "normal", "depth"):
             arrays[name] = np.array(getattr(self, name).mean)
         for key, value in self.controller.state().items():
-            arrays[f"ctrl.{key}"] = np.array(value)
+            arrays[f"ctrl.{key}"] = _narrow(np.array(value))
         counters = {
             "passes": self.passes_done, "seconds": self.seconds, "stage_seconds": dict(self.stage_seconds),
             "nonfinite": dict(self.nonfinite), "mean_counts": [m.n for m in self.means],
@@ -410,7 +422,8 @@ class Renderer:
         kinds = (mi.Color3f, mi.Normal3f, mi.Float)
         for name, kind, c in zip(("albedo", "normal", "depth"), kinds, counters["gbuffer_counts"]):
             setattr(self, name, PlainMean(kind(arrays[name]), int(c)))
-        self.controller.load_state({k[len("ctrl."):]: v for k, v in arrays.items() if k.startswith("ctrl.")})
+        self.controller.load_state({k[len("ctrl."):]: (v.astype(np.uint32) if v.dtype.kind == "u" else v)
+                                    for k, v in arrays.items() if k.startswith("ctrl.")})
         if len(self.controller.radii()) != self.n_chains or dr.width(self.controller.radii()[0]) != n:
             raise ValueError("the controller state does not match the film size or chain count")
         self.passes_done = int(counters["passes"])
