@@ -69,6 +69,17 @@ def test_snapshots_equal_separate_renders(tmp_path):
     assert not cli.snapshot_path(out, 3).exists()
 
 
+def test_no_state(tmp_path, capsys):
+    """--no-state writes the image alone (and removes a stale state of an earlier render)."""
+    a = tmp_path / "a.exr"
+    assert render(BASE + ["--passes", "1", "-o", str(a)]) == 0 and state_path(a).is_file()
+    assert render(BASE + ["--passes", "1", "--no-state", "-o", str(a)]) == 0
+    assert a.is_file() and not state_path(a).exists()
+    capsys.readouterr()
+    assert render(BASE + ["--passes", "1", "--no-state", "--checkpoint-every", "1", "-o", str(a)]) == 2
+    assert "--no-state" in capsys.readouterr().err
+
+
 def test_snapshot_lists():
     assert cli.snapshot_list("16,64,256") == (16, 64, 256)
     assert cli.snapshot_list("16..256") == (16, 32, 64, 128, 256)

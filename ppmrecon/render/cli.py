@@ -110,6 +110,9 @@ def build_parser() -> ArgumentParser:
     progressive.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="K",
                              help="also write the output and its state every K passes, so that a killed "
                                   "process loses at most K passes (default: only at the end)")
+    progressive.add_argument("--no-state", action="store_true",
+                             help="keep no state file beside the output (it cannot be continued then; a "
+                                  "CPPM/FPPM state at 1280x720 is 0.4-0.7 GB)")
     progressive.add_argument("--snapshots", type=snapshot_list, default=None, metavar="LIST",
                              help="also write a buffer file at these pass counts, e.g. 16,64,256, or "
                                   "16..256 for every doubling from 16 to 256; named OUTPUT_p0016.exr ...")
@@ -321,6 +324,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if not args.output.parent.exists():
             raise UsageError(f"--output {args.output}: folder '{args.output.parent}' does not exist")
 
+    if args.no_state and args.checkpoint_every:
+        raise UsageError("--checkpoint-every needs the state file that --no-state leaves out")
     variant = choose_variant(args.variant)
     job = _resume_job(parser, argv, args) if args.resume is not None else _new_job(args)
     renderer, output, settings = job.renderer, job.output, job.renderer.settings
@@ -330,7 +335,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"{PROG}: note: no snapshot at {', '.join(map(str, early))}: the render already has "
                          f"{job.start} passes\n")
 
-    from .state import save_with_state, scene_record, settings_record
+    from .state import save_with_state, scene_record, settings_record, state_path
 
     def write_file(path: str | Path, result) -> None:
         result.header["ppmrecon.variant"] = variant
@@ -342,6 +347,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     def save(stopped: str, result=None):
         """Write the output and its state (the pair a later --resume continues)."""
         result = result or renderer.result(stopped)
+        if args.no_state:
+            write_file(output, result)
+            state_path(output).unlink(missing_ok=True)  # a stale state would not fit anyway
+            return result
         counters, arrays = renderer.export_state()
         meta = {"scene": scene_record(job.loaded, job.scene_spec), "settings": settings_record(settings),
                 "variant": variant, "counters": counters}
