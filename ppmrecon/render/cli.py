@@ -112,7 +112,7 @@ def build_parser() -> ArgumentParser:
                                   "process loses at most K passes (default: only at the end)")
     progressive.add_argument("--no-state", action="store_true",
                              help="keep no state file beside the output (it cannot be continued then; a "
-                                  "CPPM/FPPM state at 1280x720 is 0.4-0.7 GB)")
+                                  "CPPM/FPPM state at 1280x720 is 0.2-0.6 GB)")
     progressive.add_argument("--snapshots", type=snapshot_list, default=None, metavar="LIST",
                              help="also write a buffer file at these pass counts, e.g. 16,64,256, or "
                                   "16..256 for every doubling from 16 to 256; named OUTPUT_p0016.exr ...")
