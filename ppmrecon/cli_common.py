@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import argparse
+import glob
 import sys
 import time
+from pathlib import Path
 from typing import Callable, Sequence
 
-from .errors import PpmreconError
+from .errors import PpmreconError, UsageError
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -105,3 +107,27 @@ class Progress:
         if self._drawn and not self.quiet:
             self.stream.write("\n")
             self.stream.flush()
+
+
+def expand_paths(items: Sequence[str], what: str = "file",
+                 exclude: Callable[[Path], bool] | None = None) -> list[Path]:
+    """Path arguments -> files, in order, each once. An argument with glob characters
+    that is not itself a file is a pattern (its sorted matches, less those ``exclude``
+    rejects); a pattern that matches nothing is a one-line usage error naming ``what``."""
+    out: list[Path] = []
+    for item in items:
+        if glob.has_magic(item) and not Path(item).exists():
+            matches = [Path(m) for m in sorted(glob.glob(item))]
+            matches = [m for m in matches if exclude is None or not exclude(m)]
+            if not matches:
+                raise UsageError(f"{item}: no {what} matches this pattern")
+            out += matches
+        else:
+            out.append(Path(item))
+    seen: set[Path] = set()
+    unique = []
+    for path in out:
+        if path.resolve() not in seen:
+            seen.add(path.resolve())
+            unique.append(path)
+    return unique

@@ -7,12 +7,14 @@ complete, so an interrupted write never leaves a partial file there.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import tempfile
+from contextlib import contextmanager
 from dataclasses import fields
 from pathlib import Path
-from typing import Any, Callable, TypeVar
+from typing import Any, Callable, Iterator, TypeVar
 
 from .errors import UsageError
 
@@ -26,9 +28,11 @@ def default_mode() -> int:
     return 0o666 & ~umask
 
 
-def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
-    """Call ``write(tmp_name)`` on a temporary file next to ``path``, then rename it to
-    ``path``; on any exception the temporary file is removed and nothing is renamed."""
+@contextmanager
+def staged_file(path: str | os.PathLike) -> Iterator[str]:
+    """Yield the name of a temporary file next to ``path``; when the block ends normally
+    it is renamed to ``path``, on any exception removed. Lets a caller do more (hash the
+    file, write a companion file) between writing the data and publishing them."""
     path = Path(path)
     folder = path.parent if str(path.parent) else Path(".")
     if not folder.is_dir():
@@ -36,12 +40,28 @@ def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=folder)
     os.close(fd)
     try:
-        write(tmp)
+        yield tmp
         os.chmod(tmp, default_mode())  # mkstemp makes 0600; outputs get the usual umask
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def atomic_write(path: str | os.PathLike, write: Callable[[str], None]) -> None:
+    """Call ``write(tmp_name)`` on a temporary file next to ``path``, then rename it to
+    ``path``; on any exception the temporary file is removed and nothing is renamed."""
+    with staged_file(path) as tmp:
+        write(tmp)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """Hex SHA-256 of a file's bytes (read in 1 MiB blocks)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_json(path: str | os.PathLike, what: str, missing_hint: str = "") -> Any:

@@ -71,6 +71,24 @@ def relmse_blocks(est: np.ndarray, ref: np.ndarray, block: int = 8) -> float:
     return relmse(block_means(est, block), block_means(ref, block))
 
 
+#: Rec. 709 / sRGB luminance weights of linear R, G, B (Mitsuba's ``luminance``).
+LUMINANCE_WEIGHTS = (0.212671, 0.715160, 0.072169)
+
+
+def luminance(img: np.ndarray) -> np.ndarray:
+    """Luminance of an (..., 3) linear RGB image, float64, channel axis reduced away."""
+    return np.asarray(img, dtype=np.float64) @ np.asarray(LUMINANCE_WEIGHTS)
+
+
+def luminance_ratio(est: np.ndarray, ref: np.ndarray) -> float:
+    """Mean luminance of ``est`` over that of ``ref`` (1 = same overall brightness; a
+    biased estimator or a lost light path shows here whatever the noise); NaN if the
+    reference is black."""
+    _check(est, ref)
+    denominator = float(luminance(ref).mean())
+    return float(luminance(est).mean()) / denominator if denominator > 0 else float("nan")
+
+
 #: A pixel is a firefly when its estimate exceeds FIREFLY_FACTOR x (reference +
 #: FIREFLY_FLOOR x the reference image's mean); see :func:`firefly_mask`.
 FIREFLY_FACTOR = 10.0

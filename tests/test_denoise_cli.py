@@ -221,3 +221,44 @@ def test_progress_bar_for_tiled_runs_and_summary(buffer_path, model, capsys):
     captured = capsys.readouterr()
     assert "denoise [" in captured.err and "15/15" in captured.err     # 3 x 5 tiles of 8 px
     assert "scene_denoised.exr: 34x21 denoised with 'tiny'" in captured.out
+
+
+def test_several_inputs_and_patterns_load_the_model_once(model, tmp_path, monkeypatch, capsys):
+    """Files and a quoted glob in one call: each output equals a one-file run, the model
+    is loaded once, earlier *_denoised.exr outputs are not picked up by the pattern."""
+    paths = []
+    for k in range(3):
+        path = tmp_path / f"snap_p{k:04d}.exr"
+        B.write_buffers(path, make_buffer(9, 12, seed=k))
+        paths.append(path)
+    single = tmp_path / "single.exr"
+    assert main([str(paths[1]), "--model", str(model), "-o", str(single), "--quiet", "--threads", "1"]) == 0
+    loads = []
+    real_load = C.load_checkpoint
+    monkeypatch.setattr(C, "load_checkpoint", lambda *a, **k: loads.append(a) or real_load(*a, **k))
+    pattern = str(tmp_path / "snap_p*.exr")
+    assert main([str(paths[0]), pattern, "--model", str(model), "--threads", "1"]) == 0
+    assert len(loads) == 1
+    out = capsys.readouterr().out
+    assert out.count("denoised with 'tiny'") == 3                  # paths[0] once, not twice
+    for p in paths:
+        assert p.with_name(p.stem + "_denoised.exr").is_file()
+    a, _ = B.read_rgb(paths[1].with_name("snap_p0001_denoised.exr"))
+    b, _ = B.read_rgb(single)
+    np.testing.assert_array_equal(a, b)
+    assert main([pattern, "--model", str(model), "--quiet", "--threads", "1"]) == 0   # outputs left out
+    assert not list(tmp_path.glob("*_denoised_denoised.exr"))
+
+
+def test_several_inputs_refusals_keep_earlier_outputs(model, tmp_path, capsys):
+    good = tmp_path / "good.exr"
+    B.write_buffers(good, make_buffer(9, 12, seed=1))
+    rgb_only = tmp_path / "plain.exr"
+    B.write_rgb(rgb_only, np.ones((9, 12, 3), np.float32))
+    assert main([str(good), str(rgb_only), "--model", str(model), "-o", str(tmp_path / "x.exr")]) == 2
+    assert "names one file but 2 inputs" in one_line_error(capsys)
+    assert main([str(tmp_path / "none_*.exr"), "--model", str(model)]) == 2
+    assert "no buffer file matches" in one_line_error(capsys)
+    assert main([str(good), str(rgb_only), "--model", str(model), "--quiet", "--threads", "1"]) == 2
+    assert "plain.exr" in one_line_error(capsys)
+    assert B.read_rgb(tmp_path / "good_denoised.exr")[0].shape == (9, 12, 3)   # the first is kept

@@ -1,12 +1,14 @@
 """``ppmrecon-denoise``: buffer file -> consistent learned reconstruction (paper 002 Eq. 6).
 
-    ppmrecon-denoise INPUT.exr [--model CKPT] [--output OUT.exr] [--tile N]
-                     [--weights-layers] [--device cpu|cuda] [--threads N]
-                     [--guard model|on|off] [--quiet]
+    ppmrecon-denoise INPUT.exr [INPUT.exr | 'PATTERN*.exr' ...] [--model CKPT]
+                     [--output OUT.exr] [--tile N] [--weights-layers] [--device cpu|cuda]
+                     [--threads N] [--guard model|on|off] [--quiet]
     ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
 
 The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
-written atomically; ``--weights-layers`` adds ``weight.z1 .. weight.z4``, the summed
+written atomically. Several inputs (files or glob patterns, e.g. the snapshots of one
+render) are denoised in one call with the model loaded once; a pattern leaves out files
+that are themselves ``*_denoised.exr`` outputs; ``--weights-layers`` adds ``weight.z1 .. weight.z4``, the summed
 combination weight of each ~z^j (paper 002 Fig. 6). Without ``--model`` the shipped
 default model is used if the package has one (``ppmrecon/data/models/default.pt``).
 ``--init-checkpoint`` writes an untrained network, for trying the pipeline end to end
@@ -27,7 +29,7 @@ from typing import Sequence
 import torch
 
 from ..buffers import ESTIMATES, read_buffers, write_rgb
-from ..cli_common import ArgumentParser, Progress, nonnegative_float, positive_int, run_main
+from ..cli_common import ArgumentParser, Progress, expand_paths, nonnegative_float, positive_int, run_main
 from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
@@ -58,11 +60,14 @@ def build_parser() -> ArgumentParser:
                "  ppmrecon-denoise scene.exr --model run/model.pt\n"
                "  ppmrecon-denoise scene.exr --model run/model.pt -o clean.exr --weights-layers\n"
                "  ppmrecon-denoise --init-checkpoint untrained.pt --preset tiny")
-    p.add_argument("input", nargs="?", metavar="INPUT.exr", help="buffer file written by ppmrecon-render")
+    p.add_argument("inputs", nargs="*", metavar="INPUT.exr",
+                   help="buffer file(s) written by ppmrecon-render; several files or quoted glob patterns "
+                        "(e.g. 'out_p*.exr') are denoised in one call, loading the model once")
     p.add_argument("--model", metavar="CKPT",
                    help="model checkpoint (.pt) from ppmrecon-train (default: the model shipped with "
                         "ppmrecon, if installed)")
-    p.add_argument("--output", "-o", metavar="OUT.exr", help="output RGB EXR (default: INPUT_denoised.exr)")
+    p.add_argument("--output", "-o", metavar="OUT.exr",
+                   help="output RGB EXR, for a single input (default: INPUT_denoised.exr next to each input)")
     p.add_argument("--tile", type=positive_int, metavar="N",
                    help="tile side in pixels (default: automatic, bounded memory)")
     p.add_argument("--weights-layers", action="store_true",
@@ -99,9 +104,18 @@ def build_parser() -> ArgumentParser:
     return p
 
 
+DENOISED_SUFFIX = "_denoised"
+
+
 def default_output(path: Path) -> Path:
     """``scene.exr`` -> ``scene_denoised.exr`` in the same folder."""
-    return path.with_name(f"{path.stem}_denoised.exr")
+    return path.with_name(f"{path.stem}{DENOISED_SUFFIX}.exr")
+
+
+def expand_inputs(items: Sequence[str]) -> list[Path]:
+    """Input arguments -> buffer files (see :func:`.cli_common.expand_paths`); patterns
+    leave out ``*_denoised.exr`` outputs of earlier runs."""
+    return expand_paths(items, "buffer file", exclude=lambda p: p.stem.endswith(DENOISED_SUFFIX))
 
 
 def guard_choice(choice: str, model_guard: GuardConfig) -> GuardConfig:
@@ -139,37 +153,60 @@ def _device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def _outputs(args: argparse.Namespace, inputs: list[Path]) -> list[Path]:
+    """One output per input; refuses -o with several inputs and any output that would
+    overwrite an input."""
+    if args.output and len(inputs) > 1:
+        raise UsageError(f"--output {args.output} names one file but {len(inputs)} inputs were given; "
+                         f"leave it out to write INPUT_denoised.exr next to each input")
+    outs = [Path(args.output)] if args.output else [default_output(p) for p in inputs]
+    sources = {p.resolve() for p in inputs if p.exists()}
+    for out in outs:
+        if out.suffix.lower() != ".exr":
+            raise UsageError(f"--output {out}: the output must be an .exr file")
+        if out.exists() and out.resolve() in sources:
+            raise UsageError(f"{out}: output would overwrite the input; choose another --output")
+    return outs
+
+
 def _main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.init_checkpoint:
-        if args.input:
+        if args.inputs:
             parser.error("--init-checkpoint takes no INPUT.exr")
         return _init_checkpoint(args)
-    if not args.input:
+    if not args.inputs:
         parser.error("the following arguments are required: INPUT.exr")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = _device(args.device)
     model_path = _model_path(args.model)
-    src = Path(args.input)
-    out = Path(args.output) if args.output else default_output(src)
-    if out.suffix.lower() != ".exr":
-        raise UsageError(f"--output {out}: the output must be an .exr file")
-    if src.exists() and out.exists() and out.resolve() == src.resolve():
-        raise UsageError(f"{out}: output would overwrite the input; choose another --output")
+    inputs = expand_inputs(args.inputs)
+    outputs = _outputs(args, inputs)
+    for src in inputs:  # before the model loads: a typo costs nothing
+        if not src.exists():
+            raise UsageError(f"{src}: no such file")
 
-    buf = read_buffers(src)
     model, _meta = checkpoint.load_checkpoint(model_path, map_location=device)
+    guard = guard_choice(args.guard or "on", model.guard)
+    if args.anchor is not None:
+        guard = replace(guard, anchor=args.anchor)
+    for src, out in zip(inputs, outputs):
+        _denoise_one(args, src, out, model, model_path, device, guard)
+    return 0
+
+
+def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_path: Path,
+                 device: torch.device, guard: GuardConfig) -> None:
+    """Denoise one buffer file into ``out`` (atomically) and print its summary line."""
+    buf = read_buffers(src)
     progress = Progress("denoise", quiet=args.quiet)
 
     def report(done: int, total: int) -> None:
         progress.total = total
         progress.update(done, force=done == total)
 
-    guard = guard_choice(args.guard or "on", model.guard)
-    if args.anchor is not None:
-        guard = replace(guard, anchor=args.anchor)
     start = time.perf_counter()
     try:
         result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision,
@@ -188,7 +225,6 @@ def _main(argv: Sequence[str] | None = None) -> int:
     if not args.quiet:
         h, w = buf.shape
         print(f"{out}: {w}x{h} denoised with '{model.preset.name}' in {seconds:.2f} s")
-    return 0
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -2,8 +2,13 @@
 
 Writes one buffer file (five bandwidth estimates, variances, radii, G-buffers; SPEC
 section 2), or with ``--single`` the conventional single-bandwidth image as a plain
-R,G,B EXR. Ctrl-C or the end of a ``--time`` budget writes the passes completed so far
-and records why in the header (``ppmrecon.stopped``).
+R,G,B EXR, and beside it the render's state (``FILE.exr.state.npz``, see
+:mod:`.state`), from which ``--resume FILE.exr`` continues it pass for pass as if it had
+never stopped. Ctrl-C finishes the pass in progress (a second Ctrl-C stops at once), and
+the end of a ``--time`` budget stops between passes; both write the passes completed so
+far and record why in the header (``ppmrecon.stopped``). ``--checkpoint-every K`` saves
+file and state every K passes, so a killed process loses at most K passes;
+``--snapshots`` writes a separate buffer file at chosen pass counts.
 """
 
 from __future__ import annotations
@@ -23,6 +28,36 @@ from .kernels import KERNELS
 
 PROG = "ppmrecon-render"
 DEFAULT_PASSES = 16
+
+#: Options (argparse dests) that define a render: a continued render keeps its own.
+RESUME_FIXED: tuple[str, ...] = (
+    "method", "photons", "resolution", "seed", "kernel", "max_depth", "rr_depth", "alpha", "knn",
+    "significance", "shrink_k", "beta", "r_min_frac", "per_channel", "direct", "single", "single_knn",
+    "shared_hit_point")
+
+
+def snapshot_list(text: str) -> tuple[int, ...]:
+    """argparse type: pass counts ``16,64,256``; ``FIRST..LAST`` doubles from FIRST up to
+    at most LAST (``16..256`` = 16,32,64,128,256); both forms may be mixed."""
+    counts: set[int] = set()
+    for part in text.split(","):
+        m = re.fullmatch(r"\s*(\d+)\s*(?:\.\.\s*(\d+)\s*)?", part)
+        if not m:
+            raise argparse.ArgumentTypeError(f"'{part.strip()}' is neither a pass count nor FIRST..LAST")
+        first = int(m.group(1))
+        last = int(m.group(2)) if m.group(2) else first
+        if first <= 0 or last < first:
+            raise argparse.ArgumentTypeError(f"'{part.strip()}': pass counts must be positive and FIRST <= LAST")
+        n = first
+        while n <= last:  # a few doublings, not a loop over data
+            counts.add(n)
+            n *= 2
+    return tuple(sorted(counts))
+
+
+def snapshot_path(output: Path, passes: int) -> Path:
+    """``out.exr`` -> ``out_p0016.exr`` (zero-padded so that the files sort by passes)."""
+    return output.with_name(f"{output.stem}_p{passes:04d}{output.suffix}")
 
 
 def _max_depth(text: str) -> int:
@@ -56,14 +91,31 @@ def build_parser() -> ArgumentParser:
         epilog="Built-in scenes: see --list-scenes. Example: ppmrecon-render --passes 64 "
                "--output cbox.exr && ppmrecon-denoise cbox.exr")
     p.add_argument("scene", nargs="?", default=None,
-                   help="built-in scene name or path to a Mitsuba 3/0.6 XML (default: the built-in default scene)")
+                   help="built-in scene name or path to a Mitsuba 3/0.6 XML (default: the built-in default scene; "
+                        "with --resume: the scene recorded in the state, or its new path if it moved)")
     p.add_argument("--method", default="sppm", choices=sorted(CONTROLLERS),
                    help="bandwidth controller (default: sppm)")
     budget = p.add_mutually_exclusive_group()
     budget.add_argument("--passes", type=positive_int, default=None,
-                        help=f"number of passes (default: {DEFAULT_PASSES})")
+                        help=f"number of passes; with --resume, passes to add (default: {DEFAULT_PASSES}, or up to "
+                             f"the last --snapshots count)")
     budget.add_argument("--time", type=positive_float, default=None, metavar="SECONDS",
-                        help="render for this wall-clock budget instead of a pass count")
+                        help="render for this wall-clock budget instead of a pass count (with --resume: this "
+                             "much longer)")
+    progressive = p.add_argument_group("continuing, checkpoints and snapshots")
+    progressive.add_argument("--resume", type=Path, default=None, metavar="FILE.exr",
+                             help="continue the render that wrote FILE.exr (from FILE.exr.state.npz) by "
+                                  "--passes more passes or --time more seconds; the settings are the "
+                                  "recorded ones; writes FILE.exr again unless --output is given")
+    progressive.add_argument("--checkpoint-every", type=positive_int, default=None, metavar="K",
+                             help="also write the output and its state every K passes, so that a killed "
+                                  "process loses at most K passes (default: only at the end)")
+    progressive.add_argument("--no-state", action="store_true",
+                             help="keep no state file beside the output (it cannot be continued then; a "
+                                  "CPPM/FPPM state at 1280x720 is 0.2-0.6 GB)")
+    progressive.add_argument("--snapshots", type=snapshot_list, default=None, metavar="LIST",
+                             help="also write a buffer file at these pass counts, e.g. 16,64,256, or "
+                                  "16..256 for every doubling from 16 to 256; named OUTPUT_p0016.exr ...")
     p.add_argument("--photons", type=positive_int, default=1 << 17, metavar="J",
                    help="photons emitted per pass (default: 131072)")
     p.add_argument("--resolution", type=_resolution, default=None, metavar="WxH",
@@ -147,15 +199,45 @@ def _default_output(scene_name: str, method: str, single: bool) -> Path:
     return Path(f"{stem}_{method}{'_single' if single else ''}.exr")
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    from .scene import DEFAULT_SCENE, builtin_scenes
+def _explicit_options(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> set[str]:
+    """The dests of the options the user actually gave (parsed again with no defaults)."""
+    saved = [(a, a.default) for a in parser._actions]
+    for a, _ in saved:
+        a.default = argparse.SUPPRESS
+    try:
+        return set(vars(parser.parse_args(argv)))
+    finally:
+        for a, default in saved:
+            a.default = default
 
-    if args.list_scenes:
-        for name, path in builtin_scenes().items():
-            mark = " (default)" if name == DEFAULT_SCENE else ""
-            print(f"{name}{mark}\t{path}")
-        return 0
+
+class Job:
+    """What one invocation renders: the renderer (fresh or restored) and where it writes."""
+
+    def __init__(self, loaded, renderer, output: Path, scene_spec: str, previous: str | None, start: int):
+        self.loaded, self.renderer, self.output = loaded, renderer, output
+        self.scene_spec, self.previous, self.start = scene_spec, previous, start
+        self.saved_passes: int | None = None  # passes in the output on disk, once written
+
+
+def _budget(args: argparse.Namespace, start: int) -> tuple[int | None, float | None]:
+    """(total passes or None, time budget or None) from --passes/--time/--snapshots."""
+    if args.time is not None:
+        return (None, args.time)
+    if args.passes is not None:
+        total = start + args.passes
+        if args.snapshots and args.snapshots[-1] > total:
+            raise UsageError(f"--snapshots {args.snapshots[-1]} lies beyond the {total} passes this render "
+                             f"ends at (--passes {args.passes}{f' after {start}' if start else ''})")
+        return (total, None)
+    later = [n for n in (args.snapshots or ()) if n > start]
+    return ((later[-1] if later else start + DEFAULT_PASSES), None)
+
+
+def _new_job(args: argparse.Namespace) -> Job:
+    from .integrator import Renderer, RenderSettings
+    from .scene import builtin_scenes, load_scene
+
     if not 0.0 < args.alpha < 1.0:
         raise UsageError(f"--alpha must lie in (0, 1), got {args.alpha}")
     params = method_params(args)
@@ -163,55 +245,161 @@ def main(argv: Sequence[str] | None = None) -> int:
         raise UsageError("--single and --shared-hit-point exclude each other")
     if args.single_knn is not None and not args.single:
         raise UsageError("--single-knn applies to --single renders only")
+    loaded = load_scene(args.scene, resolution=args.resolution)
+    scene_max_depth, scene_rr_depth = loaded.depths()
+    max_depth = args.max_depth if args.max_depth is not None else scene_max_depth
+    rr_depth = args.rr_depth or scene_rr_depth
+    layout = "single" if args.single else ("shared" if args.shared_hit_point else "multi")
+    passes, time_budget = _budget(args, 0)
+    settings = RenderSettings(
+        method=args.method, passes=passes, time_budget=time_budget, photons=args.photons, seed=args.seed,
+        kernel=args.kernel, max_depth=max_depth, rr_depth=rr_depth, alpha=args.alpha, knn=args.knn,
+        single_knn=args.single_knn or RenderSettings.single_knn, direct=args.direct, layout=layout,
+        method_params=params)
+    output = args.output or _default_output(loaded.name, args.method, args.single)
+    builtin = args.scene is None or args.scene in builtin_scenes()
+    spec = loaded.name if builtin else str(Path(args.scene).resolve())
+    return Job(loaded, Renderer(loaded.scene, settings, scene_name=loaded.name), output, spec, None, 0)
+
+
+def _resume_job(parser: argparse.ArgumentParser, argv: Sequence[str] | None, args: argparse.Namespace) -> Job:
+    from .integrator import Renderer, RenderSettings
+    from .scene import load_scene
+    from .state import StateError, check_output, check_scene, read_state, state_path
+
+    src: Path = args.resume
+    if src.suffix.lower() != ".exr":
+        raise UsageError(f"--resume {src}: expected the .exr file a render wrote")
+    if not src.is_file():
+        raise UsageError(f"--resume {src}: no such file")
+    sp = state_path(src)
+    if not sp.is_file():
+        raise UsageError(f"--resume {src}: no render state beside it ({sp.name}); only a file written by "
+                         f"{PROG} together with its state can be continued")
+    fixed = sorted(set(RESUME_FIXED) & _explicit_options(parser, argv))
+    if fixed:
+        flags = ", ".join("--" + f.replace("_", "-") for f in fixed)
+        raise UsageError(f"{flags} cannot be given with --resume: a continued render keeps the settings it "
+                         f"started with (recorded in {sp.name})")
+    saved = read_state(sp)
+    digest = check_output(src, saved, sp)
+    start = saved.passes
+    passes, time_budget = _budget(args, start)
+    try:
+        settings = RenderSettings(**saved.settings, passes=passes, time_budget=time_budget)
+        settings.validate()
+    except (TypeError, ValueError) as exc:
+        raise StateError(sp, f"unusable settings record ({exc})") from None
+    scene = saved.meta["scene"]
+    spec = args.scene or scene.get("spec")
+    loaded = load_scene(spec, resolution=(int(scene.get("width", 0)), int(scene.get("height", 0))))
+    check_scene(loaded, saved, sp)
+    renderer = Renderer(loaded.scene, settings, scene_name=str(scene.get("name", loaded.name)))
+    try:
+        renderer.import_state(saved.counters, saved.arrays)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise StateError(sp, f"does not fit the render it names: {exc}") from None
+    output = args.output or src
+    same = output.resolve() == src.resolve()
+    if args.scene is not None:
+        spec = str(Path(args.scene).resolve()) if Path(args.scene).is_file() else args.scene
+    job = Job(loaded, renderer, output, spec, digest if same else None, start)
+    job.saved_passes = start if same else None
+    return job
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from .scene import DEFAULT_SCENE, builtin_scenes
+
+    if args.list_scenes:
+        for name, path in builtin_scenes().items():
+            mark = " (default)" if name == DEFAULT_SCENE else ""
+            print(f"{name}{mark}\t{path}")
+        return 0
     if args.output is not None:
         if args.output.suffix.lower() != ".exr":
             raise UsageError(f"--output {args.output}: the output must be an .exr file")
         if not args.output.parent.exists():
             raise UsageError(f"--output {args.output}: folder '{args.output.parent}' does not exist")
 
+    if args.no_state and args.checkpoint_every:
+        raise UsageError("--checkpoint-every needs the state file that --no-state leaves out")
     variant = choose_variant(args.variant)
-    from .integrator import Renderer, RenderSettings
-    from .scene import load_scene
+    job = _resume_job(parser, argv, args) if args.resume is not None else _new_job(args)
+    renderer, output, settings = job.renderer, job.output, job.renderer.settings
+    single = settings.layout == "single"
+    if args.snapshots and args.snapshots[0] <= job.start:
+        early = [n for n in args.snapshots if n <= job.start]
+        sys.stderr.write(f"{PROG}: note: no snapshot at {', '.join(map(str, early))}: the render already has "
+                         f"{job.start} passes\n")
 
-    loaded = load_scene(args.scene, resolution=args.resolution)
-    scene_max_depth, scene_rr_depth = loaded.depths()
-    max_depth = args.max_depth if args.max_depth is not None else scene_max_depth
-    rr_depth = args.rr_depth or scene_rr_depth
-    layout = "single" if args.single else ("shared" if args.shared_hit_point else "multi")
-    settings = RenderSettings(
-        method=args.method, passes=args.passes if args.passes else (None if args.time else DEFAULT_PASSES),
-        time_budget=args.time, photons=args.photons, seed=args.seed, kernel=args.kernel,
-        max_depth=max_depth, rr_depth=rr_depth, alpha=args.alpha, knn=args.knn,
-        single_knn=args.single_knn or RenderSettings.single_knn, direct=args.direct, layout=layout,
-        method_params=params)
-    output = args.output or _default_output(loaded.name, args.method, args.single)
+    from .state import save_with_state, scene_record, settings_record, state_path
 
-    renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)
-    progress = Progress(f"{PROG} {loaded.name} {renderer.width}x{renderer.height} {args.method}",
+    def write_file(path: str | Path, result) -> None:
+        result.header["ppmrecon.variant"] = variant
+        if single:
+            B.write_rgb(path, result.estimates[0], header=result.header)
+        else:
+            B.write_buffers(path, result.buffer_file())
+
+    def save(stopped: str, result=None):
+        """Write the output and its state (the pair a later --resume continues)."""
+        result = result or renderer.result(stopped)
+        if args.no_state:
+            write_file(output, result)
+            state_path(output).unlink(missing_ok=True)  # a stale state would not fit anyway
+            return result
+        counters, arrays = renderer.export_state()
+        meta = {"scene": scene_record(job.loaded, job.scene_spec), "settings": settings_record(settings),
+                "variant": variant, "counters": counters}
+        job.previous = save_with_state(output, lambda tmp: write_file(tmp, result), meta, arrays, job.previous)
+        job.saved_passes = renderer.passes_done
+        return result
+
+    method = settings.method
+    progress = Progress(f"{PROG} {job.loaded.name} {renderer.width}x{renderer.height} {method}",
                         total=settings.passes, quiet=args.quiet)
+    snapshots = set(args.snapshots or ())
 
-    def on_pass(r: Renderer) -> None:
-        rate = r.passes_done * settings.photons / max(r.seconds, 1e-9)
+    def on_pass(r) -> None:
+        rate = r.passes_done * settings.photons / max(r.seconds, 1e-9)  # seconds: all sessions
         progress.update(r.passes_done, force=r.passes_done == settings.passes,
                         photons_per_s=f"{rate / 1e6:.2f}M")
+        if r.passes_done in snapshots:
+            write_file(snapshot_path(output, r.passes_done), r.result("complete"))
+        every = args.checkpoint_every
+        if every and r.passes_done % every == 0 and r.passes_done != settings.passes:
+            save("checkpoint")
 
-    result = renderer.run(on_pass)
+    def on_interrupt(pass_index: int) -> None:
+        progress.close()
+        sys.stderr.write(f"{PROG}: Ctrl-C: finishing pass {pass_index}, then writing {output} "
+                         f"(Ctrl-C again to stop at once)\n")
+
+    try:
+        result = renderer.run(on_pass, on_interrupt)
+    except KeyboardInterrupt:
+        progress.close()
+        kept = (f"{output} and its state hold {job.saved_passes} passes" if job.saved_passes
+                else "nothing was written")
+        sys.stderr.write(f"{PROG}: interrupted during pass {renderer.passes_done + 1}; {kept}\n")
+        return 130
     progress.close()
-    result.header["ppmrecon.variant"] = variant
+    result = save(result.stopped, result)
     if result.nonfinite:
         where = ", ".join(f"{result.header[f'ppmrecon.nonfinite.{k}']} {k}" for k in renderer.nonfinite)
         sys.stderr.write(f"{PROG}: warning: dropped {result.nonfinite} non-finite terms ({where}; "
                          f"recorded as ppmrecon.nonfinite.*)\n")
-    if args.single:
-        B.write_rgb(output, result.estimates[0], header=result.header)
-    else:
-        B.write_buffers(output, result.buffer_file())
     note = ""
     if result.stopped != "complete":
         note = f" ({result.stopped} after {result.passes} passes)"
     if not args.quiet:
         stages = ", ".join(f"{k} {v:.2f}s" for k, v in result.stage_seconds.items())
-        sys.stderr.write(f"{PROG}: wrote {output}: {result.passes} passes in {result.seconds:.2f}s{note} [{stages}]\n")
+        resumed = f" (continued from {job.start})" if job.start else ""
+        sys.stderr.write(f"{PROG}: wrote {output}: {result.passes} passes{resumed} in {result.seconds:.2f}s"
+                         f"{note} [{stages}]\n")
     return 130 if result.stopped == "interrupted" else 0
 
 

@@ -16,6 +16,9 @@ Interface (what the pass loop calls):
     controller.header() -> dict          method name and parameters for the buffer header
     controller.stats                     which extra gather statistics it needs:
                                          "none", "counts" (CPPM) or "moments" (FPPM)
+    controller.state() -> dict           every per-pixel array it holds, by name (for
+                                         a render's state file; empty before start)
+    controller.load_state(arrays)        the inverse: continue from those arrays
 
 The radii and statistics are per *pixel* chain state: the eye path's gather point moves
 every pass (new random position in the pixel), and the statistics pool the photons seen
@@ -63,6 +66,66 @@ class Controller(Protocol):
     def update(self, pass_index: int, result: Any) -> None: ...
 
     def header(self) -> dict[str, Any]: ...
+
+    def state(self) -> dict[str, Any]: ...
+
+    def load_state(self, arrays: dict[str, Any]) -> None: ...
+
+
+class ChainState:
+    """State export for the controllers: ``STATE`` lists the per-chain attributes (each
+    a list with one Dr.Jit array per chain) and their Dr.Jit type names; the cell
+    statistics (``_stats``, if the method has them) travel as their raw data. A resumed
+    render must continue bit for bit, so nothing is recomputed from other fields."""
+
+    STATE: tuple[tuple[str, str], ...] = (("_r", "Float"),)
+
+    def state(self) -> dict[str, Any]:
+        """Name -> Dr.Jit array of everything the controller carries between passes."""
+        out: dict[str, Any] = {}
+        for attr, _ in self.STATE:
+            for c, arr in enumerate(getattr(self, attr, [])):
+                out[f"{attr.lstrip('_')}.{c}"] = arr
+        for c, st in enumerate(getattr(self, "_stats", [])):
+            out[f"stats.{c}"] = st.data
+        return out
+
+    def load_state(self, arrays: dict[str, Any]) -> None:
+        """Continue from ``state()``'s arrays (Dr.Jit or numpy); raises ValueError (with
+        the array's name) if one is missing or the chains disagree in size."""
+        n_chains = sum(1 for k in arrays if k.startswith("r."))
+        if n_chains == 0:
+            raise ValueError("no radii (r.0 ...) in the controller state")
+        n = None
+        for attr, type_name in self.STATE:
+            cls = getattr(mi, type_name)
+            values = []
+            for c in range(n_chains):
+                key = f"{attr.lstrip('_')}.{c}"
+                if key not in arrays:
+                    raise ValueError(f"{self.name} state lacks '{key}'")
+                values.append(cls(arrays[key]))
+                n = dr.width(values[-1]) if n is None else n
+                if dr.width(values[-1]) != n:
+                    raise ValueError(f"{self.name} state '{key}' has {dr.width(values[-1])} pixels, not {n}")
+            setattr(self, attr, values)
+        if self.stats != "none":
+            stats = []
+            for c in range(n_chains):
+                st = self._new_statistics(n)
+                key = f"stats.{c}"
+                if key not in arrays:
+                    raise ValueError(f"{self.name} state lacks '{key}'")
+                data = type(st.data)(arrays[key])
+                if dr.width(data) != dr.width(st.data):
+                    raise ValueError(f"{self.name} state '{key}' holds {dr.width(data)} values, "
+                                     f"not {dr.width(st.data)}")
+                st.data = data
+                stats.append(st)
+            self._stats = stats
+
+    def _new_statistics(self, n_pixels: int) -> "CellStatistics":
+        raise NotImplementedError
 
 
 class CellStatistics:
@@ -131,7 +194,7 @@ def _per_chain_counts(results: Any) -> list[tuple[int, mi.UInt32]]:
 
 
 @dataclass
-class SPPMController:
+class SPPMController(ChainState):
     """Stochastic PPM in the Knaus-Zwicker form (paper 002 Eq. 4):
 
         r_{i+1}^2 = r_i^2 (i + alpha) / (i + 1),   alpha = 2/3 by default.
@@ -169,7 +232,7 @@ class SPPMController:
 
 
 @dataclass
-class CPPMController:
+class CPPMController(ChainState):
     """Chi-squared PPM (Lin et al. 2020), as the authors' public Mitsuba 0.6 code does it.
 
     Per pixel and chain: photon counts O_c of the 12 cells since the radius last changed,
@@ -198,10 +261,15 @@ class CPPMController:
         # Critical values once per controller (df 5 and 11), never per pixel or pass.
         self.critical = H.chi2_critical(self.significance)
 
+    STATE = (("_r", "Float"), ("_total", "UInt32"), ("_threshold", "Float"))
+
+    def _new_statistics(self, n_pixels: int) -> CellStatistics:
+        return CellStatistics(n_pixels, "counts")
+
     def start(self, r1: list[mi.Float]) -> None:
         n = dr.width(r1[0])
         self._r = [mi.Float(r) for r in r1]
-        self._stats = [CellStatistics(n, "counts") for _ in r1]
+        self._stats = [self._new_statistics(n) for _ in r1]
         self._total = [dr.zeros(mi.UInt32, n) for _ in r1]
         self._threshold = [dr.full(mi.Float, float(self.knn), n) for _ in r1]
 
@@ -236,7 +304,7 @@ FPPM_R_MIN_FRAC = 0.25
 
 
 @dataclass
-class FPPMController:
+class FPPMController(ChainState):
     """F-test PPM (paper 000 Sec. 3.2 and 5.1).
 
     Per pixel and chain: per-cell sums S_c and sums of squares Q_c of the photon
@@ -288,11 +356,16 @@ class FPPMController:
         self.test_significance = H.fppm_test_significance(self.significance, self.channels)
         self._f_table = mi.Float(H.f_critical_table(self.test_significance).astype("float32"))
 
+    STATE = (("_r", "Float"), ("_r_min", "Float"), ("_passes", "UInt32"), ("_in_disc", "UInt32"))
+
+    def _new_statistics(self, n_pixels: int) -> CellStatistics:
+        return CellStatistics(n_pixels, "moments", self.channels)
+
     def start(self, r1: list[mi.Float]) -> None:
         n = dr.width(r1[0])
         self._r = [mi.Float(r) for r in r1]
         self._r_min = [mi.Float(r) * self.r_min_frac for r in r1]
-        self._stats = [CellStatistics(n, "moments", self.channels) for _ in r1]
+        self._stats = [self._new_statistics(n) for _ in r1]
         self._passes = [dr.zeros(mi.UInt32, n) for _ in r1]  # t, passes since the reset
         self._in_disc = [dr.zeros(mi.UInt32, n) for _ in r1]  # N, photons filed since then
         dr.eval(self._r_min)

@@ -21,6 +21,8 @@ decorrelation study of paper 002 Fig. 11).
 
 from __future__ import annotations
 
+import signal
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -139,6 +141,48 @@ def knn_radius(points: GatherPoints, photon_p: mi.Point3f, k: int, r_lo: float, 
     return out
 
 
+def _narrow(values: np.ndarray) -> np.ndarray:
+    """Unsigned counts in the smallest unsigned type that holds them (lossless): CPPM's
+    per-cell photon counts are mostly small, and they are most of a state file."""
+    if values.dtype.kind != "u" or values.size == 0:
+        return values
+    top = int(values.max())
+    for dtype in (np.uint8, np.uint16):
+        if top <= np.iinfo(dtype).max:
+            return values.astype(dtype)
+    return values
+
+
+class DeferredInterrupt:
+    """Context manager: while active (main thread only, and only where Ctrl-C has its
+    default handler), the first SIGINT sets ``requested`` (and calls ``notify(pass)``)
+    instead of raising; the second raises KeyboardInterrupt as usual."""
+
+    def __init__(self, notify: Callable[[int], None] | None = None,
+                 current_pass: Callable[[], int] | None = None):
+        self.notify, self.current_pass = notify, current_pass
+        self.requested = False
+        self._previous: Any = None
+
+    def _handle(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        if self.notify is not None:
+            self.notify(self.current_pass() if self.current_pass else 0)
+
+    def __enter__(self) -> "DeferredInterrupt":
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._previous = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+            self._previous = None
+
+
 class Renderer:
     """Runs passes of the chosen method on a loaded scene and accumulates estimates."""
 
@@ -172,6 +216,8 @@ class Renderer:
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
+        #: True while a pass has changed some accumulators but not all (see run_pass).
+        self.dirty = False
 
     # -- one pass ----------------------------------------------------------------------
     def _eye_streams(self) -> tuple[int, ...]:
@@ -182,18 +228,19 @@ class Renderer:
         return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth)
                 for stream in self._eye_streams()]
 
-    def _direct(self, i: int, points: list[GatherPoints]) -> list[tuple[mi.Bool, mi.Color3f] | None]:
-        """Per eye hit point: (where direct light is estimated apart, its estimate)."""
+    def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int]:
+        """Per eye hit point: (where direct light is estimated apart, its estimate); and
+        the non-finite samples dropped."""
         s = self.settings
         if s.direct == "none":
-            return [None] * len(points)
-        out = []
+            return [None] * len(points), 0
+        out, dropped = [], 0
         for stream, p in zip(self._eye_streams(), points):
             use = uses_direct(p, s.direct, s.max_depth)
             light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream))
-            self.nonfinite["direct"] += bad
+            dropped += bad
             out.append((use, light))
-        return out
+        return out, dropped
 
     def _chains_of(self, point_index: int) -> list[int]:
         """Which chains gather at eye point ``point_index`` (A = 0, B = 1)."""
@@ -216,9 +263,14 @@ class Renderer:
         return [mi.Float((r * scale).astype(np.float32)) for scale in self.scales]
 
     def run_pass(self) -> None:
-        """Render pass ``passes_done + 1`` and fold it into the estimates."""
+        """Render pass ``passes_done + 1`` and fold it into the estimates.
+
+        Until the gather starts nothing of the renderer changes, so an exception there
+        leaves it as it was after the previous pass; from the gather on (the cell
+        statistics are updated in place) ``dirty`` is set until the pass is complete."""
         s = self.settings
         i = self.passes_done + 1
+        dropped = dict.fromkeys(self.nonfinite, 0)
 
         def clock() -> float:
             dr.sync_thread()  # kernels run asynchronously: wait so each stage is timed right
@@ -226,12 +278,13 @@ class Renderer:
 
         t0 = clock()
         photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth, s.rr_depth)
-        self.nonfinite["photons"] += photon_map.nonfinite
+        dropped["photons"] += photon_map.nonfinite
         t1 = clock()
         points = self._eye_points(i)
-        self.nonfinite["eye"] += sum(p.nonfinite for p in points)
-        direct = self._direct(i, points)
+        dropped["eye"] += sum(p.nonfinite for p in points)
+        direct, dropped["direct"] = self._direct(i, points)
         t2 = clock()
+        self.dirty = True
         if i == 1:
             self.controller.start(self._initial_radii(points, photon_map.p))
         radii = self.controller.radii()
@@ -244,7 +297,7 @@ class Renderer:
             res = gather(p, [radii[c] for c in chains], grid, s.kernel,
                          self.controller.stats_targets(chains), max_depth=s.max_depth,
                          indirect_only=None if direct[j] is None else direct[j][0])
-            self.nonfinite["gather"] += res.nonfinite
+            dropped["gather"] += res.nonfinite
             results.append((chains, res))
         t4 = clock()
 
@@ -259,7 +312,7 @@ class Renderer:
                 # Non-finite terms were dropped at their source; this is the last guard
                 # (e.g. a finite sum that overflows), counted apart in the header.
                 finite = dr.all(dr.isfinite(estimate))
-                self.nonfinite["estimate"] += int(dr.count(~finite)[0]) if dr.width(finite) else 0
+                dropped["estimate"] += int(dr.count(~finite)[0]) if dr.width(finite) else 0
                 self.means[c].add(dr.select(finite, estimate, 0.0))
         for p in points:
             self.albedo.add(p.albedo)
@@ -270,8 +323,11 @@ class Renderer:
 
         for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
             self.stage_seconds[name] += dt
+        for name, n in dropped.items():
+            self.nonfinite[name] += n
         self.seconds += t5 - t0
         self.passes_done = i
+        self.dirty = False
 
     def _cell_size(self, radii: list[mi.Float]) -> float:
         """Grid cell edge: a high quantile of the largest radius in use. Most gather
@@ -285,30 +341,95 @@ class Renderer:
         return float(max(np.quantile(r_max, 0.9), r_max.max() / 16.0, 1e-7))
 
     # -- the loop ----------------------------------------------------------------------
-    def run(self, on_pass: Callable[["Renderer"], None] | None = None) -> RenderResult:
-        """Render until the pass count or the time budget is reached; Ctrl-C stops after
-        the passes completed so far (the interrupted pass is discarded)."""
+    def run(self, on_pass: Callable[["Renderer"], None] | None = None,
+            on_interrupt: Callable[[int], None] | None = None) -> RenderResult:
+        """Render until the pass count (``settings.passes``, counted from pass 1 also when
+        the renderer continues a saved state) or the time budget (from this call on) is
+        reached.
+
+        Ctrl-C (in the main thread) lets the pass in progress finish, then stops after it
+        and ``on_pass``; ``on_interrupt(pass)`` is told at once. A second Ctrl-C, or a
+        KeyboardInterrupt raised elsewhere, stops at once: the partial pass is discarded
+        if it had not started changing the accumulators, else (``dirty``) the renderer no
+        longer holds a consistent state and KeyboardInterrupt propagates, as it does
+        before the first pass is complete."""
         s = self.settings
         stopped = "complete"
         start = time.perf_counter()
-        try:
-            while True:
-                if s.passes is not None and self.passes_done >= s.passes:
-                    break
-                if s.time_budget is not None and self.passes_done > 0:
-                    elapsed = time.perf_counter() - start
-                    per_pass = self.seconds / self.passes_done
-                    if elapsed + per_pass > s.time_budget:
-                        stopped = "time budget" if s.passes is None else "time budget before pass count"
+        with DeferredInterrupt(on_interrupt, lambda: self.passes_done + 1) as ctrl_c:
+            try:
+                while True:
+                    if ctrl_c.requested:
+                        stopped = "interrupted"
                         break
-                self.run_pass()
-                if on_pass is not None:
-                    on_pass(self)
-        except KeyboardInterrupt:
-            stopped = "interrupted"
-            if self.passes_done == 0:
-                raise
+                    if s.passes is not None and self.passes_done >= s.passes:
+                        break
+                    if s.time_budget is not None and self.passes_done > 0:
+                        elapsed = time.perf_counter() - start
+                        per_pass = self.seconds / self.passes_done
+                        if elapsed + per_pass > s.time_budget:
+                            stopped = "time budget" if s.passes is None else "time budget before pass count"
+                            break
+                    self.run_pass()
+                    if on_pass is not None:
+                        on_pass(self)
+            except KeyboardInterrupt:
+                stopped = "interrupted"
+                if self.passes_done == 0 or self.dirty:
+                    raise
         return self.result(stopped)
+
+    # -- state ---------------------------------------------------------------------------
+    def export_state(self) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+        """(counters, arrays): everything a later :meth:`import_state` needs to continue
+        this render bit for bit; arrays are numpy copies of the accumulators, named
+        ``mean.k``, ``m2.k`` (Welford, chain k), ``albedo``/``normal``/``depth`` (G-buffer
+        means) and ``ctrl.*`` (the controller's radii and statistics)."""
+        if self.dirty:
+            raise RuntimeError("the renderer is in the middle of a pass")
+        arrays: dict[str, np.ndarray] = {}
+        for k, m in enumerate(self.means):
+            arrays[f"mean.{k}"], arrays[f"m2.{k}"] = np.array(m.mean), np.array(m.m2)
+        for name in ("albedo", "normal", "depth"):
+            arrays[name] = np.array(getattr(self, name).mean)
+        for key, value in self.controller.state().items():
+            arrays[f"ctrl.{key}"] = _narrow(np.array(value))
+        counters = {
+            "passes": self.passes_done, "seconds": self.seconds, "stage_seconds": dict(self.stage_seconds),
+            "nonfinite": dict(self.nonfinite), "mean_counts": [m.n for m in self.means],
+            "gbuffer_counts": [getattr(self, n).n for n in ("albedo", "normal", "depth")],
+        }
+        return counters, arrays
+
+    def import_state(self, counters: dict[str, Any], arrays: dict[str, np.ndarray]) -> None:
+        """Continue from :meth:`export_state`'s output (of a renderer with the same scene,
+        film size and settings). Raises ValueError naming what does not fit."""
+        n = self.n_pixels
+        expect = {"albedo": (3, n), "normal": (3, n), "depth": (n,)}
+        for k in range(self.n_chains):
+            expect[f"mean.{k}"] = expect[f"m2.{k}"] = (3, n)
+        for key, shape in expect.items():
+            if key not in arrays:
+                raise ValueError(f"lacks the array '{key}'")
+            if tuple(arrays[key].shape) != shape:
+                raise ValueError(f"array '{key}' has shape {tuple(arrays[key].shape)}, expected {shape}")
+        if len(counters["mean_counts"]) != self.n_chains:
+            raise ValueError(f"holds {len(counters['mean_counts'])} chains, the render has {self.n_chains}")
+        if int(counters["passes"]) <= 0:
+            raise ValueError("holds no completed pass")
+        self.means = [RunningMean(mi.Color3f(arrays[f"mean.{k}"]), mi.Color3f(arrays[f"m2.{k}"]), int(c))
+                      for k, c in enumerate(counters["mean_counts"])]
+        kinds = (mi.Color3f, mi.Normal3f, mi.Float)
+        for name, kind, c in zip(("albedo", "normal", "depth"), kinds, counters["gbuffer_counts"]):
+            setattr(self, name, PlainMean(kind(arrays[name]), int(c)))
+        self.controller.load_state({k[len("ctrl."):]: (v.astype(np.uint32) if v.dtype.kind == "u" else v)
+                                    for k, v in arrays.items() if k.startswith("ctrl.")})
+        if len(self.controller.radii()) != self.n_chains or dr.width(self.controller.radii()[0]) != n:
+            raise ValueError("the controller state does not match the film size or chain count")
+        self.passes_done = int(counters["passes"])
+        self.seconds = float(counters["seconds"])
+        self.stage_seconds.update({k: float(v) for k, v in counters["stage_seconds"].items() if k in self.stage_seconds})
+        self.nonfinite.update({k: int(v) for k, v in counters["nonfinite"].items() if k in self.nonfinite})
 
     def result(self, stopped: str = "complete") -> RenderResult:
         """The estimates after the passes completed so far."""

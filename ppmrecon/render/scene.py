@@ -15,6 +15,7 @@ one-line :class:`SceneError` that names the element, before Mitsuba sees the fil
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 import sys
@@ -58,6 +59,9 @@ class LoadedScene:
     integrator_params: dict[str, Any]  # the file integrator's other params (+ "type"), for information
     source_version: str = "3.0.0"  # the file's <scene version>; 0.x went through mi06
     notes: list[str] = field(default_factory=list)  # lossy or noteworthy translations (0.6 files)
+    #: SHA-256 of the scene as written (the parsed XML before any rewriting) and of every
+    #: file it references: a saved render state is tied to it (see .state).
+    content_hash: str = ""
 
     @property
     def label(self) -> str:
@@ -357,6 +361,17 @@ def _absolutise_files(root: ET.Element, folder: Path) -> None:
                 el.set("value", str((folder / value).resolve()))
 
 
+def _hash_referenced_files(root: ET.Element, digest: "hashlib._Hash") -> None:
+    """Feed the bytes of every existing file the (absolutised) tree references into
+    ``digest``, in document order: a changed mesh or texture changes the scene."""
+    from ..fileio import file_sha256
+
+    for el in root.iter("string"):
+        value = el.get("value", "")
+        if el.get("name") in FILE_PARAMS and os.path.isabs(value) and os.path.isfile(value):
+            digest.update(file_sha256(value).encode())
+
+
 # --------------------------------------------------------------------------- load
 
 def _resolve_spec(spec: str | os.PathLike | None) -> tuple[str, Path, bool]:
@@ -403,6 +418,7 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
     """Load an already-parsed scene tree (modified in place). ``path`` is the file it came
     from (relative references resolve against its folder), or None."""
     label = label or name
+    digest = hashlib.sha256(ET.tostring(root, encoding="utf-8"))
     if root.tag != "scene":
         raise SceneError(f"{label}: the root element is <{root.tag}>, not <scene>")
     version_text = root.get("version")
@@ -422,6 +438,7 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
     if folder is not None:
         check_files(root, folder, label)
         _absolutise_files(root, folder)
+    _hash_referenced_files(root, digest)
 
     ensure_variant()
     import mitsuba as mi
@@ -438,4 +455,4 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
     size = sensors[0].film().size()
     return LoadedScene(scene=scene, name=name, path=path, width=int(size[0]), height=int(size[1]),
                        max_depth=max_depth, integrator_params=params,
-                       source_version=version_text or "", notes=notes)
+                       source_version=version_text or "", notes=notes, content_hash=digest.hexdigest())
