@@ -527,10 +527,17 @@ def test_rule_scale_texture(tmp_path):
     assert bump.find("texture").get("type") == "scale"     # left for the bumpmap rule
 
 
-def test_rule_vertexcolors():
-    root = run("vertexcolors", '<bsdf type="diffuse"><texture type="vertexcolors" name="reflectance"/></bsdf>')
+def test_rule_vertexcolors(tmp_path):
+    (tmp_path / "c.ply").write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\n"
+                                    "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    root, _ = run_in("vertexcolors", '<bsdf type="diffuse" id="vc"><texture type="vertexcolors" name="reflectance"/>'
+                                     '</bsdf><shape type="ply"><string name="filename" value="c.ply"/><ref id="vc"/>'
+                                     '</shape><shape type="obj"><bsdf type="diffuse"><texture type="vertexcolors" '
+                                     'name="reflectance"/></bsdf></shape>', tmp_path)
     tex = root.find("bsdf/texture")
     assert tex.get("type") == "mesh_attribute" and tex.find("string").get("value") == "vertex_color"
+    assert float(tex.find("float[@name='scale']").get("value")) == pytest.approx(1 / 255)   # 8-bit colours
+    assert root.find("shape/bsdf/texture").find("float") is None                          # no PLY: as is
 
 
 def test_rule_roughdiffuse():

@@ -194,7 +194,7 @@ def test_refuses_a_nested_medium(tmp_path):
     one_line_error(path, '<medium type="homogeneous" name="interior">')
 
 
-@pytest.mark.parametrize("etype", ["projector", "directionalarea"])
+@pytest.mark.parametrize("etype", ["directionalarea", "irradiancemeter"])
 def test_refuses_an_unsupported_emitter_type(tmp_path, etype):
     path = scene_file(tmp_path, f'<emitter type="{etype}"/>' + LIT_SPHERE)
     msg = one_line_error(path, f"emitter type '{etype}'")

@@ -108,6 +108,8 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--variant", choices=VARIANTS, default=None,
                    help="force a Mitsuba variant (default: cuda_ad_rgb if a GPU is usable, else llvm_ad_rgb)")
     p.add_argument("--list-scenes", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--check", action="store_true",
+                   help="load the scene, report what the import approximated, and exit without rendering")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -173,7 +175,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     from .integrator import Renderer, RenderSettings
     from .scene import load_scene
 
-    loaded = load_scene(args.scene, resolution=args.resolution)
+    loaded = load_scene(args.scene, resolution=args.resolution, warn=not args.check)
+    if args.check:
+        from ..scene.loader import check_report
+        sys.stdout.write(check_report(loaded))
+        return 0
     scene_max_depth, scene_rr_depth = loaded.depths()
     max_depth = args.max_depth if args.max_depth is not None else scene_max_depth
     rr_depth = args.rr_depth or scene_rr_depth
@@ -198,6 +204,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     result = renderer.run(on_pass)
     progress.close()
     result.header["ppmrecon.variant"] = variant
+    if loaded.notes:
+        result.header[B.H_IMPORT_NOTES] = B.encode_notes(loaded.notes)
     if result.nonfinite:
         where = ", ".join(f"{result.header[f'ppmrecon.nonfinite.{k}']} {k}" for k in renderer.nonfinite)
         sys.stderr.write(f"{PROG}: warning: dropped {result.nonfinite} non-finite terms ({where}; "

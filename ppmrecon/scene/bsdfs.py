@@ -222,9 +222,9 @@ def roughdiffuse(root: ET.Element, ctx: Context) -> None:
     for el, _ in plugins(root, "bsdf", ("roughdiffuse",)):
         alpha = params(el).get("alpha")
         a = alpha.get("value") if alpha is not None and alpha.tag == "float" else "0.2" if alpha is None else "textured"
+        ctx.note(f"Oren-Nayar roughness (alpha {a}) dropped: Lambertian 'diffuse'", el)
         remove(el, "alpha", "useFastApprox")
         el.set("type", "diffuse")
-        ctx.note(f"Oren-Nayar roughness (alpha {a}) dropped: Lambertian 'diffuse'", el)
 
 
 @RULES.rule("phong")

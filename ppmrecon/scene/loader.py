@@ -32,7 +32,10 @@ if TYPE_CHECKING:  # pragma: no cover
 DEFAULT_SCENE = "cornell_caustics"
 SCENES_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenes"
 
-SUPPORTED_EMITTERS = ("area", "point", "spot", "directional", "envmap", "constant", "sunsky")
+#: Emitters the photon pass samples, each checked by an energy test against Mitsuba 3's
+#: `path` (tests/test_scene_families.py). `directionalarea` samples rays too, but `path`
+#: cannot see it (a delta direction on a surface), so nothing could check it.
+SUPPORTED_EMITTERS = ("area", "point", "spot", "directional", "envmap", "constant", "sunsky", "projector")
 SUPPORTED_SENSORS = ("perspective", "thinlens", "orthographic")
 MEDIUM_TAGS = ("medium", "phase", "subsurface")
 # Property names whose value is a file, resolved against the scene file's folder.
@@ -40,6 +43,10 @@ FILE_PARAMS = ("filename",)
 _MAX_DEPTH_NAMES = ("max_depth", "maxDepth")
 _HIDE_NAMES = ("hide_emitters", "hideEmitters")
 _PROPERTY_TAGS = ("integer", "float", "boolean", "string")
+#: Emitters whose texture photon emission samples (Texture::sample_spectrum), and the
+#: Mitsuba 3 textures that implement it in RGB mode.
+_SAMPLED_EMITTER_TEXTURES = ("area", "spot")
+SAMPLEABLE_TEXTURES = ("bitmap",)
 
 
 @dataclass
@@ -126,6 +133,7 @@ def _parent_map(root: ET.Element) -> dict[ET.Element, ET.Element]:
 def refuse_unsupported(root: ET.Element, label: str, lines: Lines | None = None) -> None:
     """Refuse what the renderer does not simulate, naming the element and, where the
     file gave it, its line (both dialects)."""
+    ids = {el.get("id"): el for el in root.iter() if el.get("id") is not None and el.tag != "ref"}
     for el in root.iter():
         where = f"{lines[el][0]}:{lines[el][1]}" if lines and el in lines else label
         if el.tag in MEDIUM_TAGS:
@@ -137,6 +145,14 @@ def refuse_unsupported(root: ET.Element, label: str, lines: Lines | None = None)
         if el.tag == "emitter" and el.get("type") not in SUPPORTED_EMITTERS:
             raise SceneError(f"{where}: {describe(el)}: emitter type '{el.get('type')}' is not supported "
                              f"by the ppmrecon renderer (supported: {', '.join(SUPPORTED_EMITTERS)})")
+        if el.tag == "emitter" and el.get("type") in _SAMPLED_EMITTER_TEXTURES:
+            for tex in el:
+                if tex.tag == "ref":
+                    tex = ids.get(tex.get("id"), tex)
+                if tex.tag == "texture" and tex.get("type") not in SAMPLEABLE_TEXTURES:
+                    raise SceneError(f"{where}: {describe(el)}: its '{tex.get('type')}' texture cannot be sampled "
+                                     "for photon emission (Mitsuba 3 implements sample_spectrum for "
+                                     f"{', '.join(SAMPLEABLE_TEXTURES)} textures only)")
         if el.tag == "sensor" and el.get("type") not in SUPPORTED_SENSORS:
             raise SceneError(f"{where}: {describe(el)}: sensor type '{el.get('type')}' is not supported "
                              f"by the ppmrecon renderer (supported: {', '.join(SUPPORTED_SENSORS)})")
@@ -398,3 +414,24 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
     return LoadedScene(scene=scene, name=name, path=path, width=int(size[0]), height=int(size[1]),
                        max_depth=max_depth, integrator_params=params,
                        source_version=version_text or "", notes=notes)
+
+
+def check_report(loaded: LoadedScene) -> str:
+    """What ``ppmrecon-render SCENE --check`` prints: the loaded scene's size, its
+    plugins by kind, and every import note (approximation), one a line."""
+    scene = loaded.scene
+
+    def kinds(objs: Any) -> str:
+        names: dict[str, int] = {}
+        for o in objs:
+            key = str(o).split("[", 1)[0].strip() or type(o).__name__  # "SunskyEmitter[...]" -> its class
+            names[key] = names.get(key, 0) + 1
+        return ", ".join(f"{n} {k}" for k, n in sorted(names.items())) or "none"
+
+    lines = [f"{loaded.label}: loaded (scene version {loaded.source_version or '?'}), "
+             f"{loaded.width}x{loaded.height}, max_depth {loaded.max_depth if loaded.max_depth is not None else -1}",
+             f"  shapes: {kinds(scene.shapes())}",
+             f"  emitters: {kinds(scene.emitters())}",
+             f"  import notes: {len(loaded.notes) if loaded.notes else 'none (nothing approximated)'}"]
+    lines += [f"  - {n}" for n in loaded.notes]
+    return "\n".join(lines) + "\n"

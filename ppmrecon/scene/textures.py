@@ -247,14 +247,58 @@ def scale_texture(root: ET.Element, ctx: Context) -> None:
         replace(parent, el, new)
 
 
+#: PLY colour property types -> the factor that maps them to [0, 1], as 0.6 read them.
+PLY_COLOR_SCALE = {"uchar": 1 / 255, "uint8": 1 / 255, "char": 1 / 255, "int8": 1 / 255,
+                   "ushort": 1 / 65535, "uint16": 1 / 65535, "float": 1.0, "float32": 1.0, "double": 1.0}
+
+
+def ply_color_scale(path: Path) -> float | None:
+    """The factor of a PLY file's vertex colours (``red``/``r``), None when it has none."""
+    with open(path, "rb") as f:
+        for raw in f:
+            line = raw.decode("ascii", "replace").split()
+            if line[:1] == ["end_header"]:
+                return None
+            if len(line) == 3 and line[0] == "property" and line[2] in ("red", "r"):
+                return PLY_COLOR_SCALE.get(line[1])
+    return None
+
+
+def _owning_shapes(root: ET.Element, tex: ET.Element) -> list[ET.Element]:
+    """Shapes that use the BSDF a texture sits in (by nesting or by ``<ref>``)."""
+    parents = {c: p for p in root.iter() for c in p}
+    node, owners = tex, []
+    while node in parents:
+        node = parents[node]
+        if node.tag == "shape":
+            return [node]
+        if node.get("id") is not None:
+            owners = [parents[r] for r in root.iter("ref") if r.get("id") == node.get("id") and r in parents]
+    return [o for o in owners if o.tag == "shape"]
+
+
 @RULES.rule("vertexcolors")
 def vertexcolors(root: ET.Element, ctx: Context) -> None:
     """0.6 ``<texture type="vertexcolors">`` (the mesh's per-vertex colours, e.g. PLY
-    red/green/blue) -> Mitsuba 3 ``<texture type="mesh_attribute">`` with
-    ``name="vertex_color"``, the attribute Mitsuba 3's PLY loader fills from them."""
+    red/green/blue, which 0.6 mapped to [0, 1]) -> Mitsuba 3 ``<texture
+    type="mesh_attribute">`` with ``name="vertex_color"`` (the attribute Mitsuba 3's PLY
+    loader fills) and ``scale`` 1/255 (1/65535) for 8-bit (16-bit) colours, which Mitsuba
+    3 keeps unnormalised. Shapes with differently typed colours sharing it are refused."""
     for el, _ in plugins(root, "texture", ("vertexcolors",)):
+        scales = set()
+        for shape in _owning_shapes(root, el):
+            fname = params(shape).get("filename")
+            if shape.get("type") == "ply" and fname is not None:
+                path = _resolve(ctx, fname.get("value", ""))
+                if path.is_file():
+                    scales.add(ply_color_scale(path))
+        scales.discard(None)
+        if len(scales) > 1:
+            ctx.refuse(el, "is shared by PLY files whose colours have different types")
         el.set("type", "mesh_attribute")
         child(el, "string", "name", "vertex_color")
+        if scales and scales != {1.0}:
+            child(el, "float", "scale", scales.pop())
 
 
 @RULES.rule("texture_uv_transform")
