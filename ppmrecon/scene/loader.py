@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .common import (Context, Lines, SceneError, describe, ensure_variant, mitsuba_error_line, one_line,
+from .common import (Context, Lines, SceneError, describe, ensure_variant, mitsuba_error_line,
                      parse_xml)
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -16,7 +16,7 @@ import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
-from .common import Context, RuleList, describe, fmt, floats, parse_xml, walk
+from .common import Context, RuleList, describe, floats, parse_xml, walk
 
 EARLY = RuleList()
 LATE = RuleList()
@@ -219,4 +219,4 @@ def numeric_types(root: ET.Element, ctx: Context) -> None:
             el.set("value", str(int(value)))
 
 
-__all__ = ["EARLY", "LATE", "KNOWN_TAGS", "RENAMES", "INTEGER_PARAMS", "fmt"]
+__all__ = ["EARLY", "LATE", "KNOWN_TAGS", "RENAMES", "INTEGER_PARAMS"]
