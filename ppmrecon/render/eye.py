@@ -46,8 +46,20 @@ class GatherPoints:
         return dr.width(self.found)
 
 
+def _has_null_bsdf(scene: mi.Scene) -> bool:
+    """Whether a shape's BSDF lets light through unchanged (a Mitsuba 3 ``mask``): only
+    then do eye paths draw the extra random number that decides to pass, so scenes
+    without one keep their random streams (same seed, same image)."""
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
+            return True
+    return False
+
+
 @dr.syntax
-def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int):
+def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int,
+          null_bsdfs: bool = False):
     """Follow delta bounces; returns the last ray, throughput, L_e, path length, segments,
     found, and which lanes dropped a non-finite term."""
     beta = mi.Color3f(1.0)
@@ -75,13 +87,15 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
         # A surface that also lets light through unchanged (a Mitsuba 3 `mask` with
         # opacity < 1): pass through with the probability of its null transmission,
         # else gather here, each branch divided by its probability.
-        through = hit & smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
-        t_null = dr.select(through, mi.Color3f(bsdf.eval_null_transmission(si, through)), 0.0)
-        p_null = dr.clip((t_null.x + t_null.y + t_null.z) / 3.0, 0.0, 1.0)
-        passes = through & (rng.next_float32() < p_null)
-        beta *= dr.select(passes, t_null / dr.maximum(p_null, 1e-8),
-                          dr.select(through, 1.0 / dr.maximum(1.0 - p_null, 1e-8), 1.0))
-        smooth &= ~passes
+        passes = mi.Bool(False)
+        if dr.hint(null_bsdfs, mode="scalar"):
+            through = hit & smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+            t_null = dr.select(through, mi.Color3f(bsdf.eval_null_transmission(si, through)), 0.0)
+            p_null = dr.clip((t_null.x + t_null.y + t_null.z) / 3.0, 0.0, 1.0)
+            passes = through & (rng.next_float32() < p_null)
+            beta *= dr.select(passes, t_null / dr.maximum(p_null, 1e-8),
+                              dr.select(through, 1.0 / dr.maximum(1.0 - p_null, 1e-8), 1.0))
+            smooth &= ~passes
         stop_here = hit & smooth
         found |= stop_here
         length += dr.select(hit, si.t, 0.0)
@@ -122,7 +136,8 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     ray = mi.Ray3f(ray)
 
     depth_cap = mi.UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
-    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth)
+    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth,
+                                                                   _has_null_bsdf(scene))
     beta *= ray_weight
     emitted *= ray_weight
 
