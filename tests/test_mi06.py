@@ -678,6 +678,26 @@ def test_rule_sunsky(kind, sun, sky):
     assert p["to_world"][0].attrib == {"x": "1", "angle": "-90"}
 
 
+def test_sun_direction_is_world_space_and_keeps_06_defaults():
+    """0.6's sunDirection is a world direction: the imported sun is brightest there (not
+    where Mitsuba 3's Z-up frame would put a local direction); turbidity and albedo keep
+    0.6's defaults (3, 0.15)."""
+    import drjit as dr
+    import mitsuba as mi
+    root = run("sunsky", '<emitter type="sunsky"><vector name="sunDirection" x="0.3" y="1" z="0.4"/>'
+                         '<integer name="year" value="1999"/></emitter>')
+    p = {c.get("name"): c.get("value") for c in root.find("emitter")}
+    assert p["turbidity"] == "3" and p["albedo"] == "0.15" and "year" not in p
+    sun = _bsdf(ET.tostring(root.find("emitter"), encoding="unicode"))
+
+    def radiance(d):
+        d = np.asarray(d, float) / np.linalg.norm(d)
+        si = dr.zeros(mi.SurfaceInteraction3f, 1)
+        si.wi = -mi.Vector3f(*(float(v) for v in d))
+        return float(np.array(sun.eval(si)).sum())
+    assert radiance((0.3, 1, 0.4)) > 100 * radiance((0.3, 1, -0.4))
+
+
 def test_sky_is_y_up_after_import():
     """0.6's sky lies above the xz plane (+Y up); Mitsuba 3's sunsky is Z-up until rotated."""
     import drjit as dr

@@ -102,16 +102,14 @@ def sunsky(root: ET.Element, ctx: Context) -> None:
         radius = param_float(el, "sunRadiusScale", 1.0, ctx)
         dropped = [k for k in ("stretch", "extend", "resolution") if k in p]
         remove(el, "scale", "sunScale", "skyScale", "sunRadiusScale", "stretch", "extend", "resolution")
+        # A sun direction (world space in both versions) overrides date, time and place.
         if "sunDirection" in p:
             p["sunDirection"].set("name", "sun_direction")
-        else:
-            for key, (name, default) in SKY_DEFAULTS.items():
-                if key not in p:
-                    value = int(default) if key in _INT_KEYS else float(default)
-                    child(el, "integer" if key in _INT_KEYS else "float", name, value)
-        if "sunDirection" in p:
-            for key in set(SKY_DEFAULTS) - {"turbidity", "albedo"}:
-                remove(el, key)
+            remove(el, *(set(SKY_DEFAULTS) - {"turbidity", "albedo"}))
+        for key, (name, default) in SKY_DEFAULTS.items():
+            if key not in p and ("sunDirection" not in p or key in ("turbidity", "albedo")):
+                value = int(default) if key in _INT_KEYS else float(default)
+                child(el, "integer" if key in _INT_KEYS else "float", name, value)
         for key in ("year", "month", "day"):
             node = params(el).get(key)
             if node is not None and node.tag == "float":
