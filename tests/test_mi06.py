@@ -724,7 +724,7 @@ def test_rule_collimated():
 
 
 def test_conductor_named_materials_of_06_all_exist_in_mitsuba3():
-    """0.6's table of named conductors (doc 8.2.4, table 3) is kept by name: each loads."""
+    """0.6's table of named conductors (doc section 8.2, conductor) is kept by name: each loads."""
     from ppmrecon.scene.common import ensure_variant
     ensure_variant()
     import mitsuba as mi
@@ -732,3 +732,32 @@ def test_conductor_named_materials_of_06_all_exist_in_mitsuba3():
              "Ni_palik Rh Se SiC SnTe Ta Te ThF4 TiC TiN TiO2 VC V_palik VN W none").split()
     for name in names:
         mi.load_dict({"type": "conductor", "material": name})
+
+
+def write_serialized(path, meshes) -> None:
+    """A Mitsuba serialized file (format 0x041C, version 4; one zlib stream per mesh,
+    single precision, no normals/uvs; offsets and count at the end) of (verts, faces)."""
+    import struct
+    import zlib
+    out, offsets = b"", []
+    for verts, faces in meshes:
+        offsets.append(len(out))
+        body = struct.pack("<I", 0x1000) + b"mesh\0" + struct.pack("<QQ", len(verts), len(faces))
+        body += np.asarray(verts, "<f4").tobytes() + np.asarray(faces, "<u4").tobytes()
+        out += struct.pack("<HH", 0x041C, 4) + zlib.compress(body)
+    out += b"".join(struct.pack("<Q", o) for o in offsets) + struct.pack("<I", len(meshes))
+    path.write_bytes(out)
+
+
+def test_serialized_shape_index_and_crease_angle(tmp_path):
+    tri = ([[0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0, 1, 2]])
+    quad = ([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], [[0, 1, 2], [0, 2, 3]])
+    write_serialized(tmp_path / "m.serialized", [tri, quad])
+    (tmp_path / "s.xml").write_text(
+        '<scene version="0.6.0"><sensor type="perspective"/><shape type="serialized">'
+        '<string name="filename" value="m.serialized"/><integer name="shapeIndex" value="1"/>'
+        '<float name="maxSmoothAngle" value="30"/></shape></scene>')
+    ls = load_scene(str(tmp_path / "s.xml"), warn=False)
+    (mesh,) = ls.scene.shapes()
+    assert (mesh.vertex_count(), mesh.face_count()) == (4, 2)
+    assert any("maxSmoothAngle=30 dropped" in n for n in ls.notes)

@@ -146,7 +146,7 @@ def microfacet_distribution(root: ET.Element, ctx: Context) -> None:
     rough BSDFs -> ``"beckmann"`` with the same alpha(s), noted. 0.6 turned alpha into the
     Phong/AS exponent e = 2/alpha^2 - 2, which is Walter et al.'s (2007) match of the
     Beckmann lobe of width alpha (AS is the anisotropic Phong form); GGX with the same
-    alpha would have much longer tails. ``beckmann``/``ggx`` are kept (0.6 doc 8.2.5)."""
+    alpha would have much longer tails. ``beckmann``/``ggx`` are kept (0.6 doc section 8.2, roughconductor)."""
     for el, parent in walk(root):
         if el.tag == "string" and el.get("name") == "distribution" and parent is not None \
                 and parent.tag == "bsdf":
@@ -162,7 +162,7 @@ def microfacet_distribution(root: ET.Element, ctx: Context) -> None:
 def conductor_default_material(root: ET.Element, ctx: Context) -> None:
     """A 0.6 ``conductor``/``roughconductor`` with neither ``material`` nor ``eta``/``k``
     -> ``<string name="material" value="Cu">``: 0.6's default material was copper,
-    Mitsuba 3's is ``none`` (a perfect mirror). Named materials (0.6 doc 8.2.4, table 3)
+    Mitsuba 3's is ``none`` (a perfect mirror). Named materials (0.6 doc section 8.2, conductor)
     are the same list in Mitsuba 3; an unknown name is refused by Mitsuba 3 by name."""
     for el, _ in plugins(root, "bsdf", ("conductor", "roughconductor")):
         p = params(el)

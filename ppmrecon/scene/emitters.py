@@ -20,7 +20,7 @@ RULES = RuleList()
 KNOWN = frozenset({"area", "point", "spot", "directional", "collimated", "constant", "envmap",
                    "sky", "sun", "sunsky"})
 
-#: 0.6's sky/sun defaults (doc 8.8.9-8.8.11): Tokyo, 2010-07-10 15:00 local time.
+#: 0.6's sky/sun defaults (doc section 8.8: sun, sky, sunsky): Tokyo, 2010-07-10 15:00 local time.
 SKY_DEFAULTS: dict[str, tuple[str, float]] = {
     "turbidity": ("turbidity", 3.0), "albedo": ("albedo", 0.15),
     "year": ("year", 2010), "month": ("month", 7), "day": ("day", 10),
@@ -36,7 +36,7 @@ COLLIMATED_CUTOFF_DEG = 0.05
 
 @RULES.rule("spot_light")
 def spot_light(root: ET.Element, ctx: Context) -> None:
-    """0.6 ``<emitter type="spot">`` (doc 8.8.3) -> Mitsuba 3 ``spot``: ``cutoffAngle``/
+    """0.6 ``<emitter type="spot">`` (doc section 8.8, spot) -> Mitsuba 3 ``spot``: ``cutoffAngle``/
     ``beamWidth`` -> ``cutoff_angle``/``beam_width`` (renamed earlier; same defaults, 20
     deg and 3/4 of it), ``intensity`` kept, and a projected ``<texture name="texture">``
     kept as is: both versions look it up at uv = 0.5 + 0.5 d.xy / (d.z tan(cutoff)) in the
@@ -50,7 +50,7 @@ def spot_light(root: ET.Element, ctx: Context) -> None:
 
 @RULES.rule("envmap")
 def envmap(root: ET.Element, ctx: Context) -> None:
-    """0.6 ``envmap`` (doc 8.8.8; ``filename``, ``scale``, ``toWorld``, ``gamma``,
+    """0.6 ``envmap`` (doc section 8.8, envmap; ``filename``, ``scale``, ``toWorld``, ``gamma``,
     ``cache``) -> Mitsuba 3 ``envmap`` with the same file, scale and transform (both map
     the latitude-longitude image with +Y up); ``cache`` dropped; a ``gamma`` other than -1
     baked into a linear EXR (noted)."""
@@ -85,7 +85,7 @@ def _sky_frame(el: ET.Element) -> None:
 @RULES.rule("sunsky")
 def sunsky(root: ET.Element, ctx: Context) -> None:
     """0.6 ``sky`` (Hosek-Wilkie sky), ``sun`` (the solar disk) and ``sunsky`` (both)
-    (doc 8.8.9-8.8.11) -> Mitsuba 3 ``sunsky`` (the same Hosek-Wilkie model): ``sky`` as
+    (doc section 8.8: sun, sky, sunsky) -> Mitsuba 3 ``sunsky`` (the same Hosek-Wilkie model): ``sky`` as
     ``sun_scale=0``, ``sun`` as ``sky_scale=0``; ``turbidity``, ``albedo``, date, time
     and location kept with 0.6's defaults made explicit (Tokyo, 2010-07-10 15:00),
     ``sunDirection`` -> ``sun_direction``; ``scale`` multiplies ``sun_scale`` and
@@ -130,7 +130,7 @@ def sunsky(root: ET.Element, ctx: Context) -> None:
 @RULES.rule("collimated")
 def collimated(root: ET.Element, ctx: Context) -> None:
     """0.6 ``collimated`` (a single beam of ``power`` watts along +Z of ``toWorld``, doc
-    8.8.5) -> Mitsuba 3 ``spot`` with a 0.05 degree cutoff (and beam width) and intensity
+    section 8.8) -> Mitsuba 3 ``spot`` with a 0.05 degree cutoff (and beam width) and intensity
     power / (2 pi (1 - cos cutoff)), so that it emits the same power in a beam that
     widens by 0.09 % of the distance travelled; noted (Mitsuba 3 has no collimated beam)."""
     for el, _ in plugins(root, "emitter", ("collimated",)):

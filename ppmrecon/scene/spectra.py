@@ -1,6 +1,6 @@
 """Mitsuba 0.6 colour and spectrum properties -> Mitsuba 3 linear ``<rgb>``.
 
-Mitsuba 0.6 documentation, section 6.1.3 "Color spectra": ``<rgb>`` is linear RGB,
+Mitsuba 0.6 documentation, section 6 "Scene file format", colour spectra: ``<rgb>`` is linear RGB,
 ``<srgb>`` is sRGB-encoded (``#rrggbb`` too), ``<spectrum value="v">`` is flat,
 ``<spectrum value="l1:v1, l2:v2, ...">`` is a wavelength:value list, ``<spectrum
 filename="x.spd">`` reads such a list from a file, a plain list of N values is the

@@ -1,4 +1,4 @@
-"""Mitsuba 0.6 textures -> Mitsuba 3 textures (0.6 documentation, section 8.10 "Textures":
+"""Mitsuba 0.6 textures -> Mitsuba 3 textures (0.6 documentation, section 8.3 "Textures":
 ``bitmap``, ``checkerboard``, ``gridtexture``, ``scale``, ``vertexcolors``, ``wireframe``,
 ``curvature``).
 

@@ -4,9 +4,9 @@
 These rules run first (``EARLY``: before anything looks at plugin types, so included
 files and substituted parameters are checked like the rest) and after the colour rules
 (``LATE``: renames, so that the plugin modules see Mitsuba 3 parameter names).
-Mitsuba 0.6 documentation: section 6 "Scene file format" (6.1 property types, 6.1.6
-transformations, 6.2 "Instancing and references" for ``ref``/``id``, 6.3 "Including
-external files", 6.4 "Default parameter values").
+Mitsuba 0.6 documentation: section 6 "Scene file format" (property types, transformations,
+instancing and references for ``ref``/``id``, including external files, default
+parameter values).
 """
 
 from __future__ import annotations
@@ -82,7 +82,7 @@ def _expand(parent: ET.Element, ctx: Context, base: Path | None, depth: int) -> 
 
 @EARLY.rule("include")
 def include(root: ET.Element, ctx: Context) -> None:
-    """``<include filename="part.xml"/>`` (0.6 doc 6.3) -> the children of the included
+    """``<include filename="part.xml"/>`` (0.6 doc section 6, including external files) -> the children of the included
     file's ``<scene>`` spliced in its place, recursively; a missing file, a root other
     than ``<scene>`` or nesting deeper than 16 levels is refused with the include's line."""
     _expand(root, ctx, ctx.folder, 0)
@@ -93,7 +93,7 @@ _PARAM = re.compile(r"\$(\w+)")
 
 @EARLY.rule("defaults")
 def defaults(root: ET.Element, ctx: Context) -> None:
-    """``<default name="spp" value="64"/>`` + ``value="$spp"`` (0.6 doc 6.4) -> every
+    """``<default name="spp" value="64"/>`` + ``value="$spp"`` (0.6 doc section 6, default parameter values) -> every
     ``$name`` in every attribute replaced by its default and the ``<default>`` elements
     removed (Mitsuba 3 would apply them too, but the loader must see real values to
     check files and depths); a ``$name`` with no default is refused with its line."""
@@ -146,7 +146,7 @@ def integrator(root: ET.Element, ctx: Context) -> None:
 
 @EARLY.rule("transforms")
 def transforms(root: ET.Element, ctx: Context) -> None:
-    """0.6 transform operations (doc 6.1.6) -> Mitsuba 3's, which share the syntax except:
+    """0.6 transform operations (doc section 6, transformations) -> Mitsuba 3's, which share the syntax except:
     ``<lookAt>`` -> ``<lookat>`` (0.6 spelling); ``<matrix>`` must have 16 values (0.6
     refused anything else; Mitsuba 3 would also read 9); ``<scale>`` with both ``value``
     and x/y/z is refused, as 0.6 did; a ``<rotate>`` without ``angle`` is refused
@@ -169,7 +169,7 @@ def transforms(root: ET.Element, ctx: Context) -> None:
 
 @EARLY.rule("references")
 def references(root: ET.Element, ctx: Context) -> None:
-    """``<ref id="x">`` (0.6 doc 6.2) -> checked: every reference must name an ``id``
+    """``<ref id="x">`` (0.6 doc section 6, references) -> checked: every reference must name an ``id``
     declared in the file (0.6 and Mitsuba 3 share the syntax; a dangling one is refused
     here by id and line rather than by Mitsuba 3's internal property name); a duplicate
     ``id`` is refused as 0.6 refused it."""
