@@ -389,6 +389,8 @@ def test_scene06_unknown_parameter_is_named(scene06):
     with pytest.raises(SceneError) as err:
         load_scene(str(path))
     assert "wobbliness" in str(err.value) and "\n" not in str(err.value)
+    line = bad[:bad.index('name="wobbliness"')].count("\n") + 1
+    assert str(err.value).startswith(f"{path}:{line}: ")     # Mitsuba 3's complaint, placed in the file
 
 
 # --------------------------------------------------------------------------- rules of the full 0.6 set

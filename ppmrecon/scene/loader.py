@@ -17,6 +17,7 @@ before Mitsuba sees the file. Each note is printed as a warning line at load.
 from __future__ import annotations
 
 import os
+import re
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
@@ -350,6 +351,23 @@ def _resolve_spec(spec: str | os.PathLike | None) -> tuple[str, Path, bool]:
     return path.stem, path, False
 
 
+_UNREFERENCED = re.compile(r'unreferenced propert(?:y|ies) in (\w+) plugin of type "([^"]+)": \w+ "([^"]+)"')
+
+
+def _locate(message: str, root: ET.Element, lines: Lines | None) -> str | None:
+    """``file:line`` of the parameter a Mitsuba 3 "unreferenced property" error names,
+    when the user's file gave it (Mitsuba only sees the regenerated XML)."""
+    m = _UNREFERENCED.search(message)
+    if not m or not lines:
+        return None
+    tag, _, name = m.groups()
+    for parent in root.iter(tag):
+        for el in parent:
+            if el.get("name") == name and el in lines:
+                return f"{lines[el][0]}:{lines[el][1]}"
+    return None
+
+
 def load_scene(spec: str | os.PathLike | None,
                resolution: tuple[int, int] | int | None = None,
                warn: bool = True) -> LoadedScene:
@@ -406,7 +424,8 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
             with _ResolverScope(folder):
                 scene = mi.load_string(xml)
         except Exception as exc:  # Mitsuba raises RuntimeError; anything else is the same to the user
-            raise SceneError(f"{label}: {mitsuba_error_line(exc)}") from None
+            line = mitsuba_error_line(exc)
+            raise SceneError(f"{_locate(line, root, lines) or label}: {line}") from None
     finally:
         ctx.cleanup()  # derived bitmaps are read at load time
     sensors = scene.sensors()
