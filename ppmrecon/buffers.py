@@ -57,6 +57,8 @@ H_SEED = "ppmrecon.seed"
 H_SCENE = "ppmrecon.scene"
 H_SECONDS = "ppmrecon.render_seconds"
 H_STOPPED = "ppmrecon.stopped"
+#: What the scene import approximated (one note a line; absent when nothing was).
+H_IMPORT_NOTES = "ppmrecon.import_notes"
 REQUIRED_HEADER: tuple[str, ...] = (
     H_VERSION, H_METHOD, H_KERNEL, H_PASSES, H_PHOTONS, H_ALPHA, H_KNN, H_SEED,
     H_SCENE, H_SECONDS,
@@ -156,6 +158,17 @@ class BufferFile:
 
 
 # ---------------------------------------------------------------------------- writing
+
+def encode_notes(notes: list[str]) -> str:
+    """Import notes as one header string, one note a line (notes are one line each)."""
+    return "\n".join(" ".join(str(n).split()) for n in notes)
+
+
+def decode_notes(header: Mapping[str, Any]) -> list[str]:
+    """The import notes of a header (empty when the import approximated nothing)."""
+    text = header.get(H_IMPORT_NOTES, "")
+    return [line for line in str(text).splitlines() if line.strip()]
+
 
 def _header_value(key: str, value: Any) -> Any:
     if isinstance(value, (bool, np.bool_)):

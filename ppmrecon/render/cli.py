@@ -160,6 +160,8 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--variant", choices=VARIANTS, default=None,
                    help="force a Mitsuba variant (default: cuda_ad_rgb if a GPU is usable, else llvm_ad_rgb)")
     p.add_argument("--list-scenes", action="store_true", help="list the built-in scenes and exit")
+    p.add_argument("--check", action="store_true",
+                   help="load the scene, report what the import approximated, and exit without rendering")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -327,6 +329,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.no_state and args.checkpoint_every:
         raise UsageError("--checkpoint-every needs the state file that --no-state leaves out")
     variant = choose_variant(args.variant)
+    if args.check:
+        from ..scene.loader import check_report
+        from .scene import load_scene
+
+        sys.stdout.write(check_report(load_scene(args.scene, resolution=args.resolution, warn=False)))
+        return 0
     job = _resume_job(parser, argv, args) if args.resume is not None else _new_job(args)
     renderer, output, settings = job.renderer, job.output, job.renderer.settings
     single = settings.layout == "single"
@@ -339,6 +347,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     def write_file(path: str | Path, result) -> None:
         result.header["ppmrecon.variant"] = variant
+        if job.loaded.notes:
+            result.header[B.H_IMPORT_NOTES] = B.encode_notes(job.loaded.notes)
         if single:
             B.write_rgb(path, result.estimates[0], header=result.header)
         else:

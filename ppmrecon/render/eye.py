@@ -2,7 +2,8 @@
 (SPEC section 3, step 2).
 
 Each lane samples a uniform position inside its pixel (box filter) and follows delta
-interactions (mirror, glass) by BSDF sampling in radiance mode, accumulating
+interactions (mirror, glass, and the null transmission of a partly opaque ``mask``,
+taken with its probability) by BSDF sampling in radiance mode, accumulating
 
     L_e += beta * L_emitted            (emitters seen directly or through specular chains)
 
@@ -45,8 +46,20 @@ class GatherPoints:
         return dr.width(self.found)
 
 
+def _has_null_bsdf(scene: mi.Scene) -> bool:
+    """Whether a shape's BSDF lets light through unchanged (a Mitsuba 3 ``mask``): only
+    then do eye paths draw the extra random number that decides to pass, so scenes
+    without one keep their random streams (same seed, same image)."""
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
+            return True
+    return False
+
+
 @dr.syntax
-def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int):
+def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int,
+          null_bsdfs: bool = False):
     """Follow delta bounces; returns the last ray, throughput, L_e, path length, segments,
     found, and which lanes dropped a non-finite term."""
     beta = mi.Color3f(1.0)
@@ -71,15 +84,29 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
         hit = active & si.is_valid()
         bsdf = si.bsdf(ray)
         smooth = mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        # A surface that also lets light through unchanged (a Mitsuba 3 `mask` with
+        # opacity < 1): pass through with the probability of its null transmission,
+        # else gather here, each branch divided by its probability.
+        passes = mi.Bool(False)
+        if dr.hint(null_bsdfs, mode="scalar"):
+            through = hit & smooth & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null)
+            t_null = dr.select(through, mi.Color3f(bsdf.eval_null_transmission(si, through)), 0.0)
+            p_null = dr.clip((t_null.x + t_null.y + t_null.z) / 3.0, 0.0, 1.0)
+            passes = through & (rng.next_float32() < p_null)
+            beta *= dr.select(passes, t_null / dr.maximum(p_null, 1e-8),
+                              dr.select(through, 1.0 / dr.maximum(1.0 - p_null, 1e-8), 1.0))
+            smooth &= ~passes
         stop_here = hit & smooth
         found |= stop_here
         length += dr.select(hit, si.t, 0.0)
         active = hit & ~smooth & (depth < max_depth)
 
+        delta = active & ~passes
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
-                                      mi.Point2f(rng.next_float32(), rng.next_float32()), active)
-        beta[active] *= bsdf_weight
-        ray[active] = si.spawn_ray(si.to_world(bs.wo))
+                                      mi.Point2f(rng.next_float32(), rng.next_float32()), delta)
+        beta[delta] *= bsdf_weight
+        ray[delta] = si.spawn_ray(si.to_world(bs.wo))
+        ray[active & passes] = si.spawn_ray(ray.d)
         # Roulette on delta chains (only unbounded depth needs it to end mirror halls).
         q = dr.minimum(dr.max(beta), 0.95)
         roulette = active & (depth >= rr_depth)
@@ -109,7 +136,8 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     ray = mi.Ray3f(ray)
 
     depth_cap = mi.UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
-    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth)
+    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth,
+                                                                   _has_null_bsdf(scene))
     beta *= ray_weight
     emitted *= ray_weight
 
