@@ -146,7 +146,10 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
 
     n_params = sum(p.numel() for p in model.parameters())
     key = "output" if cfg.select == "relmse" else "image_ratio"
-    best = min((h["val"][key] for h in history if h.get("val") and key in h["val"]), default=math.inf)
+    # Only epochs validated on the same images compare (a resumed run may see a grown data set).
+    val_ids = sorted(s.path for s in val_samples)
+    best = min((h["val"][key] for h in history
+                if h.get("val") and key in h["val"] and h.get("val_images") == val_ids), default=math.inf)
     t_start = time.perf_counter()
     progress = Progress(f"ppmrecon-train {cfg.preset} ({n_params} params)", total=cfg.epochs * cfg.steps_per_epoch,
                         quiet=quiet)
@@ -174,7 +177,7 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             progress.update(epoch * cfg.steps_per_epoch + step + 1, epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.4f}")
         val = _validate(model, val_samples, dev)
         record = {"epoch": epoch + 1, "loss": float(np.mean(losses)), "seconds": time.perf_counter() - t0,
-                  "val_passes": val_passes, "val": val}
+                  "val_passes": val_passes, "val": val, "val_images": val_ids}
         history.append(record)
         meta = {"trained": True, "epochs": epoch + 1, "preset": cfg.preset, "train_config": asdict(cfg),
                 "data": str(data), "train_images": len(train_samples), "val_images": len(val_samples),
