@@ -147,7 +147,7 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     n_params = sum(p.numel() for p in model.parameters())
     key = "output" if cfg.select == "relmse" else "image_ratio"
     # Only epochs validated on the same images compare (a resumed run may see a grown data set).
-    val_ids = sorted(s.path for s in val_samples)
+    val_ids = sorted(s.name for s in val_samples)
     best = min((h["val"][key] for h in history
                 if h.get("val") and key in h["val"] and h.get("val_images") == val_ids), default=math.inf)
     t_start = time.perf_counter()
