@@ -27,6 +27,7 @@ from typing import Any, Mapping, NamedTuple
 import torch
 
 from ..buffers import SCHEMA_VERSION
+from ..data import MODELS
 from ..errors import UsageError
 from ..fileio import atomic_write
 from .features import FeatureConfig
@@ -37,7 +38,7 @@ FORMAT = "ppmrecon-kpn"
 #: 2: adds "guard" (an older ppmrecon must not run a guard-trained model without it)
 FORMAT_VERSION = 2
 #: A shipped default model is picked up from here when it exists.
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default.pt"
+DEFAULT_MODEL = MODELS / "default.pt"
 _ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
 
 

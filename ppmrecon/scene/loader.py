@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from ..data import SCENES
 from .common import (Context, Lines, SceneError, describe, ensure_variant, mitsuba_error_line,
                      parse_xml)
 
@@ -32,7 +33,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import mitsuba as mi
 
 DEFAULT_SCENE = "cornell_caustics"
-SCENES_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenes"
+#: The built-in scenes travel inside the package (ppmrecon/data/scenes).
+SCENES_DIR = SCENES
 
 #: Emitters the photon pass samples, each checked by an energy test against Mitsuba 3's
 #: `path` (tests/test_scene_families.py). `directionalarea` samples rays too, but `path`
@@ -93,7 +95,7 @@ class LoadedScene:
 
 
 def builtin_scenes() -> dict[str, Path]:
-    """Built-in scene names -> XML paths (every ``configs/scenes/*.xml``)."""
+    """Built-in scene names -> XML paths (every ``ppmrecon/data/scenes/*.xml``)."""
     if not SCENES_DIR.is_dir():
         return {}
     return {p.stem: p for p in sorted(SCENES_DIR.glob("*.xml"))}
