@@ -14,6 +14,9 @@
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 py="${1:-$root/.venv/bin/python}"
+# The caller's PYTHONPATH (a checkout, say) must not stand in for the installed wheel,
+# nor make pip believe ppmrecon is installed already.
+unset PYTHONPATH
 [ -x "$py" ] || { echo "check_wheel: no Python at $py (run ./scripts/setup.sh first)" >&2; exit 2; }
 work="$(mktemp -d "${TMPDIR:-/tmp}/ppmrecon-wheel.XXXXXX")"
 trap 'rm -rf "$work"' EXIT
@@ -32,13 +35,12 @@ echo "check_wheel: built $(basename "${wheel[0]}") ($(( $(stat -c %s "${wheel[0]
 "$py" -m venv --without-pip "$work/venv"
 site_new="$("$work/venv/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
 site_deps="$("$py" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')"
-"$py" -m pip --disable-pip-version-check -q --python "$work/venv/bin/python" install --no-deps --no-index "${wheel[0]}"
+"$py" -m pip --disable-pip-version-check -q --python "$work/venv/bin/python" install --no-deps --no-index --force-reinstall "${wheel[0]}"
 echo "$site_deps" > "$site_new/zz_ppmrecon_deps.pth"
 t1=$EPOCHREALTIME
 
 bin="$work/venv/bin"
 cd "$work/empty"
-unset PYTHONPATH
 # Where ppmrecon comes from: the clean environment, not the checkout.
 "$bin/python" - "$site_new" <<'EOF'
 import sys, ppmrecon
@@ -51,7 +53,7 @@ grep -q "^cornell_caustics (default)" scenes.txt || { echo "check_wheel: no buil
 "$bin/ppmrecon-render" water_caustic --passes 1 --photons 2048 --resolution 16x16 --quiet -o water.exr  # a mesh (.ply) beside its XML
 "$bin/ppmrecon-denoise" default.exr --quiet
 "$bin/python" -m ppmrecon.preview side.png default.exr default_denoised.exr
-"$bin/ppmrecon-compare" default.exr default_denoised.exr --layers z4 > compare.txt
+"$bin/ppmrecon-compare" default_denoised.exr default.exr --layers z4 > compare.txt  # scores ~z^4 against the denoised image
 "$bin/ppmrecon-train" --help > /dev/null
 "$bin/ppmrecon-train" generate --help | grep -q "v2_cpu"
 "$bin/ppmrecon-compare" --help > /dev/null

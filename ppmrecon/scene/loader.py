@@ -522,6 +522,8 @@ def check_mitsuba_scene(scene: "mi.Scene", label: str) -> None:
         if shape.interior_medium() is not None or shape.exterior_medium() is not None:
             raise SceneError(f"{label}: shape {_class_name(shape)} has an interior/exterior medium: "
                              "participating media are not simulated by the ppmrecon renderer")
+    if not scene.emitters():
+        raise SceneError(f"{label}: the scene has no emitter: there is nothing to trace photons from")
     for emitter in scene.emitters():
         if _class_name(emitter) not in EMITTER_CLASSES:
             raise SceneError(f"{label}: emitter {_class_name(emitter)} is not supported by the ppmrecon renderer "
