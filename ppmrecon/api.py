@@ -38,6 +38,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import mitsuba as mi
 
     from .model.kpn import KPN
+    from .render.integrator import RenderSettings
+    from .scene.loader import LoadedScene
 
 __all__ = ["render", "denoise", "load_buffers", "save", "compare", "BufferFile"]
 
@@ -71,7 +73,7 @@ def render(scene: str | os.PathLike | None | mi.Scene | Mapping[str, Any] = None
     True
     """
     from .backend import choose_variant
-    from .render.integrator import Renderer, RenderSettings
+    from .render.integrator import Renderer
     from .scene.loader import load_scene
 
     from .backend import VARIANTS
@@ -79,25 +81,41 @@ def render(scene: str | os.PathLike | None | mi.Scene | Mapping[str, Any] = None
     if variant is not None or (_active_variant() not in VARIANTS and type(scene).__name__ != "Scene"):
         choose_variant(variant)  # a script's own variant is kept; its mi.Scene is bound to it
     loaded = load_scene(scene, resolution=resolution)
-    scene_max_depth, scene_rr_depth = loaded.depths()
     if passes is None and time_budget is None:
         raise UsageError("render: give passes or time_budget")
     if not 0.0 < alpha < 1.0:
         raise UsageError(f"render: alpha must lie in (0, 1), got {alpha}")
-    settings = RenderSettings(
-        method=method, passes=passes, time_budget=time_budget, photons=photons, seed=seed, kernel=kernel,
-        max_depth=scene_max_depth if max_depth is None else max_depth, rr_depth=rr_depth or scene_rr_depth,
-        alpha=alpha, knn=knn, direct=direct, method_params=dict(method_params or {}))
+    settings = render_settings(loaded, max_depth=max_depth, rr_depth=rr_depth, method=method, passes=passes,
+                               time_budget=time_budget, photons=photons, seed=seed, kernel=kernel, alpha=alpha,
+                               knn=knn, direct=direct, method_params=dict(method_params or {}))
     try:
         renderer = Renderer(loaded.scene, settings, scene_name=loaded.name)
     except (TypeError, ValueError) as exc:  # settings and controller options are checked here
         raise UsageError(f"render: {exc}") from None
     on_pass = None if progress is None else (lambda r: progress(r.passes_done, r.seconds))
     result = renderer.run(on_pass)
-    result.header["ppmrecon.variant"] = _active_variant()
-    if loaded.notes:
-        result.header[B.H_IMPORT_NOTES] = B.encode_notes(loaded.notes)
+    stamp_header(result.header, str(_active_variant()), loaded.notes)
     return result.buffer_file()
+
+
+def render_settings(loaded: LoadedScene, max_depth: int | None = None, rr_depth: int | None = None,
+                    **options: Any) -> RenderSettings:
+    """The render settings for a loaded scene (``ppmrecon-render`` builds its own with
+    this too): ``max_depth``/``rr_depth`` default to the scene integrator's values,
+    ``options`` are :class:`~ppmrecon.render.integrator.RenderSettings` fields."""
+    from .render.integrator import RenderSettings
+
+    scene_max_depth, scene_rr_depth = loaded.depths()
+    return RenderSettings(max_depth=scene_max_depth if max_depth is None else max_depth,
+                          rr_depth=rr_depth or scene_rr_depth, **options)
+
+
+def stamp_header(header: dict[str, Any], variant: str, notes: list[str]) -> None:
+    """Record in a render's header the Mitsuba variant it ran on and what the scene
+    import approximated (as every buffer file written by ppmrecon does)."""
+    header["ppmrecon.variant"] = variant
+    if notes:
+        header[B.H_IMPORT_NOTES] = B.encode_notes(notes)
 
 
 def _active_variant() -> str | None:
