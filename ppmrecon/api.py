@@ -41,7 +41,9 @@ if TYPE_CHECKING:  # pragma: no cover
     from .render.integrator import RenderSettings
     from .scene.loader import LoadedScene
 
-__all__ = ["render", "denoise", "load_buffers", "save", "compare", "BufferFile"]
+__all__ = ["render", "denoise", "load_buffers", "load_image", "load_model", "save", "compare", "builtin_scenes",
+           "BufferFile"]
+
 
 def render(scene: str | os.PathLike | None | mi.Scene | Mapping[str, Any] = None, passes: int | None = 16,
            method: str = "sppm", photons: int = 1 << 17, resolution: tuple[int, int] | int | None = None,
@@ -53,9 +55,9 @@ def render(scene: str | os.PathLike | None | mi.Scene | Mapping[str, Any] = None
 
     ``scene``: a built-in name (``ppmrecon.builtin_scenes()``), a path to a Mitsuba 3
     or 0.6 XML file, a loaded ``mi.Scene`` or a Mitsuba scene dict (``mi.load_dict``
-    form); None is the default built-in scene. ``method``: ``sppm``, ``cppm`` or
-    ``fppm`` (bandwidth controller; ``method_params`` passes its options, e.g.
-    ``{"significance": 0.01}``). ``passes`` (or ``time_budget`` in seconds, or both:
+    form); None is the default built-in scene. ``method``: the bandwidth controller,
+    as ``ppmrecon-render --method`` (``sppm``, ``cppm``, ``fppm``, ...); ``method_params``
+    passes its options, e.g. ``{"significance": 0.01}`` for ``cppm``. ``passes`` (or ``time_budget`` in seconds, or both:
     whichever ends first), ``photons`` per pass, ``resolution`` ((W, H), or W keeping
     the aspect ratio), ``seed``: as the ``ppmrecon-render`` options of the same names;
     ``max_depth``/``rr_depth`` default to the scene's integrator values.
@@ -72,11 +74,9 @@ def render(scene: str | os.PathLike | None | mi.Scene | Mapping[str, Any] = None
     >>> float(buf.estimates[1].mean()) > 0   # ~z^1: the plane is lit
     True
     """
-    from .backend import choose_variant
+    from .backend import VARIANTS, choose_variant
     from .render.integrator import Renderer
     from .scene.loader import load_scene
-
-    from .backend import VARIANTS
 
     if variant is not None or (_active_variant() not in VARIANTS and type(scene).__name__ != "Scene"):
         choose_variant(variant)  # a script's own variant is kept; its mi.Scene is bound to it
@@ -159,9 +159,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    import torch
-
-    from .model.cli import guard_choice
+    from .model.cli import guard_choice, torch_device
     from .model.infer import denoise as run
 
     if guard not in ("on", "off", "model"):
@@ -170,7 +168,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     if not isinstance(buf, BufferFile):
         raise UsageError(f"denoise: expected a BufferFile or a buffer-file path, got {type(buffers).__name__}")
     net = load_model(model)
-    return run(buf, net, tile=tile, device=torch.device(device), precision=precision,
+    return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard)).rgb
 
 

@@ -136,7 +136,10 @@ def _init_checkpoint(args) -> int:
     return 0
 
 
-def _device(name: str) -> torch.device:
+def torch_device(name: str) -> torch.device:
+    """The torch device ``name`` (cpu or cuda), refused in one line when it is not there."""
+    if name not in ("cpu", "cuda"):
+        raise UsageError(f"device '{name}': choose cpu or cuda")
     if name == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: torch sees no CUDA device (CPU-only build or no GPU); use --device cpu")
     return torch.device(name)
@@ -169,7 +172,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
         parser.error("the following arguments are required: INPUT.exr")
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = _device(args.device)
+    device = torch_device(args.device)
     model_path = checkpoint.model_path(args.model)
     inputs = expand_inputs(args.inputs)
     outputs = _outputs(args, inputs)
