@@ -4,7 +4,7 @@
 #   benchmarks/study.sh SCENES_DIR [--quick]
 #
 # 1. set-up, with the benchmark extras (matplotlib, pyoidn);
-# 2. full mode only: the generated training set data/cpu (configs/data/cpu.json; resumable)
+# 2. full mode only: the generated training set data/cpu (ppmrecon/data/configs/data/cpu.json; resumable)
 #    and one checkpoint per larger preset, trained on it for a fixed wall-clock budget on one
 #    thread each, side by side (runs/study_small, runs/study_paper; kept when present);
 # 3. benchmarks/study.py: references (cached in docs/cache), equal-time comparisons,
@@ -40,13 +40,13 @@ fi
 SMALL_SECONDS="${SMALL_SECONDS:-1200}"
 PAPER_SECONDS="${PAPER_SECONDS:-1200}"
 mkdir -p runs
-"$venv/bin/ppmrecon-train" generate --config configs/data/cpu.json --out data/cpu --workers 2
+"$venv/bin/ppmrecon-train" generate --config cpu --out data/cpu --workers 2
 pids=()
 for preset in small paper; do
   run="runs/study_$preset"
   [ -f "$run/best.pt" ] && continue
   budget=SMALL_SECONDS; [ "$preset" = paper ] && budget=PAPER_SECONDS
-  "$venv/bin/ppmrecon-train" fit data/cpu --out "$run" --config "configs/train/cpu_$preset.json" \
+  "$venv/bin/ppmrecon-train" fit data/cpu --out "$run" --config "cpu_$preset" \
     --threads 1 --max-seconds "${!budget}" > "runs/study_$preset.log" 2>&1 &
   pids+=($!)
 done

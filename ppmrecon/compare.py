@@ -37,6 +37,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from . import buffers as B
+from ._callable import CallableModule
 from .cli_common import ArgumentParser, expand_paths, positive_float, run_main
 from .errors import UsageError
 from .fileio import atomic_write, write_text
@@ -46,6 +47,9 @@ PROG = "ppmrecon-compare"
 BLOCK = 8
 TRIM = 1e-3
 H_DENOISER = "ppmrecon.denoiser"  # written by ppmrecon-denoise
+
+# ``ppmrecon.compare(image, reference)`` is also the API function (see ppmrecon._callable).
+sys.modules[__name__].__class__ = CallableModule
 
 
 @dataclass

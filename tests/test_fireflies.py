@@ -438,11 +438,10 @@ def test_scale_free_features_need_the_radiance_scale_for_crops():
 
 @pytest.mark.parametrize("name", ["cpu", "cpu_small", "cpu_paper", "cpu_v2"])
 def test_shipped_training_configs_train_with_the_guard(name):
-    from pathlib import Path
-
+    from ppmrecon.data import CONFIGS
     from ppmrecon.train.loop import TrainConfig
 
-    cfg = TrainConfig.load(Path(__file__).resolve().parents[1] / "configs" / "train" / f"{name}.json")
+    cfg = TrainConfig.load(CONFIGS / "train" / f"{name}.json")
     assert GuardConfig.from_dict(cfg.guard) == DEFAULT_ON
     assert FeatureConfig.from_dict(cfg.features) == FeatureConfig(scale_free=True, outliers=True)
 

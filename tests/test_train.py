@@ -21,6 +21,7 @@ choose_variant()
 import mitsuba as mi  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
+from ppmrecon.data import CONFIGS as CONFIGS_DIR  # noqa: E402
 from ppmrecon.model import checkpoint as C  # noqa: E402
 from ppmrecon.model import cli as denoise_cli  # noqa: E402
 from ppmrecon.render.eye import trace_eye  # noqa: E402
@@ -150,7 +151,7 @@ def test_corrupt_and_partial_items_are_reported_and_skipped(tiny_data, tmp_path)
 
 # ------------------------------------------------------------ data set v2 (issue 12)
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "data"
+CONFIGS = CONFIGS_DIR / "data"
 
 
 def test_firefly_mask_is_scale_free_and_ignores_faint_noise_on_black():

@@ -27,6 +27,7 @@ from typing import Any, Mapping, NamedTuple
 import torch
 
 from ..buffers import SCHEMA_VERSION
+from ..data import MODELS
 from ..errors import UsageError
 from ..fileio import atomic_write
 from .features import FeatureConfig
@@ -37,8 +38,11 @@ FORMAT = "ppmrecon-kpn"
 #: 2: adds "guard" (an older ppmrecon must not run a guard-trained model without it)
 FORMAT_VERSION = 2
 #: A shipped default model is picked up from here when it exists.
-DEFAULT_MODEL = Path(__file__).resolve().parent.parent / "data" / "models" / "default.pt"
+DEFAULT_MODEL = MODELS / "default.pt"
 _ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
+NO_MODEL_HINT = ("no model given and no default model is installed; pass --model CKPT "
+                 "(train one with `ppmrecon-train`, or make an untrained one with "
+                 "`ppmrecon-denoise --init-checkpoint CKPT`)")
 
 
 class Checkpoint(NamedTuple):
@@ -70,6 +74,15 @@ def init_checkpoint(path: str | os.PathLike, preset: Preset | str = DEFAULT_PRES
     model = build(preset, features, guard)
     save_checkpoint(path, model, {"trained": False, "seed": seed})
     return model
+
+
+def model_path(arg: str | os.PathLike | None) -> Path:
+    """The checkpoint to load: ``arg``, or the shipped default model when it is None."""
+    if arg:
+        return Path(arg)
+    if DEFAULT_MODEL.is_file():
+        return DEFAULT_MODEL
+    raise UsageError(NO_MODEL_HINT)
 
 
 def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Checkpoint:

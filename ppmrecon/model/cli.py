@@ -45,9 +45,6 @@ H_DENOISE_SECONDS = "ppmrecon.denoise_seconds"
 H_GUARD = "ppmrecon.guard"
 H_ANCHOR = "ppmrecon.guard.anchor"
 
-NO_MODEL_HINT = ("no model given and no default model is installed; pass --model CKPT "
-                 "(train one with `ppmrecon-train`, or make an untrained one with "
-                 "`ppmrecon-denoise --init-checkpoint CKPT`)")
 
 
 def build_parser() -> ArgumentParser:
@@ -139,15 +136,10 @@ def _init_checkpoint(args) -> int:
     return 0
 
 
-def _model_path(arg: str | None) -> Path:
-    if arg:
-        return Path(arg)
-    if checkpoint.DEFAULT_MODEL.is_file():
-        return checkpoint.DEFAULT_MODEL
-    raise UsageError(NO_MODEL_HINT)
-
-
-def _device(name: str) -> torch.device:
+def torch_device(name: str) -> torch.device:
+    """The torch device ``name`` (cpu or cuda), refused in one line when it is not there."""
+    if name not in ("cpu", "cuda"):
+        raise UsageError(f"device '{name}': choose cpu or cuda")
     if name == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: torch sees no CUDA device (CPU-only build or no GPU); use --device cpu")
     return torch.device(name)
@@ -180,8 +172,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         parser.error("the following arguments are required: INPUT.exr")
     if args.threads:
         torch.set_num_threads(args.threads)
-    device = _device(args.device)
-    model_path = _model_path(args.model)
+    device = torch_device(args.device)
+    model_path = checkpoint.model_path(args.model)
     inputs = expand_inputs(args.inputs)
     outputs = _outputs(args, inputs)
     for src in inputs:  # before the model loads: a typo costs nothing

@@ -6,9 +6,8 @@ channels, ``kernel`` x ``kernel``, ReLU; then an output convolution of
 pixel, the un-normalised combination weights of Eq. 6 (softmax in the combiner).
 Initialisation is Glorot uniform with zero biases, as in the paper.
 
-Presets are JSON files named ``<name>.json``; they are looked up in the repository's
-``configs/models/`` and in the package's ``ppmrecon/data/models/`` (identical copies,
-so an installed package finds them too), or given as a path to a JSON file.
+Presets are JSON files named ``<name>.json`` in the package's ``ppmrecon/data/models/``
+(package data, so an installed package finds them), or given as a path to a JSON file.
 """
 
 from __future__ import annotations
@@ -22,15 +21,14 @@ from typing import Any, Mapping
 import torch
 import torch.nn as nn
 
+from ..data import MODELS
 from ..errors import UsageError
 from ..fileio import unknown_keys
 from .combine import logit_channels
 from .features import FeatureConfig
 from .guard import GuardConfig
 
-PACKAGE_MODELS = Path(__file__).resolve().parent.parent / "data" / "models"
-REPO_MODELS = Path(__file__).resolve().parents[2] / "configs" / "models"
-PRESET_DIRS: tuple[Path, ...] = (REPO_MODELS, PACKAGE_MODELS)
+PRESETS_DIR: Path = MODELS
 #: The CPU default: the only preset within a few times OIDN's time at 720p on 2 cores
 #: (benchmarks/results/denoise.md); ``small`` and ``paper`` are for better hardware.
 DEFAULT_PRESET = "tiny"
@@ -86,20 +84,18 @@ class Preset:
 
 def preset_names() -> list[str]:
     """Names of the presets found on disk."""
-    return sorted({p.stem for d in PRESET_DIRS if d.is_dir() for p in d.glob("*.json")})
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.json"))
 
 
 def load_preset(name_or_path: str | os.PathLike) -> Preset:
     """A preset by name (``paper``, ``small``, ``tiny``, ...) or from a JSON file path."""
     text = str(name_or_path)
-    candidates = [Path(text)] if text.endswith(".json") or os.sep in text else \
-        [d / f"{text}.json" for d in PRESET_DIRS]
-    for path in candidates:
-        if path.is_file():
-            try:
-                return Preset.from_dict(json.loads(path.read_text()))
-            except (ValueError, TypeError) as exc:  # JSONDecodeError is a ValueError
-                raise UsageError(f"{path}: invalid model preset ({exc})") from None
+    path = Path(text) if text.endswith(".json") or os.sep in text else PRESETS_DIR / f"{text}.json"
+    if path.is_file():
+        try:
+            return Preset.from_dict(json.loads(path.read_text()))
+        except (ValueError, TypeError) as exc:  # JSONDecodeError is a ValueError
+            raise UsageError(f"{path}: invalid model preset ({exc})") from None
     known = ", ".join(preset_names()) or "none found"
     raise UsageError(f"unknown model preset '{text}' (known: {known}; or give a .json path)")
 

@@ -237,6 +237,7 @@ def _budget(args: argparse.Namespace, start: int) -> tuple[int | None, float | N
 
 
 def _new_job(args: argparse.Namespace) -> Job:
+    from ..api import render_settings
     from .integrator import Renderer, RenderSettings
     from .scene import builtin_scenes, load_scene
 
@@ -248,15 +249,12 @@ def _new_job(args: argparse.Namespace) -> Job:
     if args.single_knn is not None and not args.single:
         raise UsageError("--single-knn applies to --single renders only")
     loaded = load_scene(args.scene, resolution=args.resolution)
-    scene_max_depth, scene_rr_depth = loaded.depths()
-    max_depth = args.max_depth if args.max_depth is not None else scene_max_depth
-    rr_depth = args.rr_depth or scene_rr_depth
     layout = "single" if args.single else ("shared" if args.shared_hit_point else "multi")
     passes, time_budget = _budget(args, 0)
-    settings = RenderSettings(
-        method=args.method, passes=passes, time_budget=time_budget, photons=args.photons, seed=args.seed,
-        kernel=args.kernel, max_depth=max_depth, rr_depth=rr_depth, alpha=args.alpha, knn=args.knn,
-        single_knn=args.single_knn or RenderSettings.single_knn, direct=args.direct, layout=layout,
+    settings = render_settings(
+        loaded, max_depth=args.max_depth, rr_depth=args.rr_depth, method=args.method, passes=passes,
+        time_budget=time_budget, photons=args.photons, seed=args.seed, kernel=args.kernel, alpha=args.alpha,
+        knn=args.knn, single_knn=args.single_knn or RenderSettings.single_knn, direct=args.direct, layout=layout,
         method_params=params)
     output = args.output or _default_output(loaded.name, args.method, args.single)
     builtin = args.scene is None or args.scene in builtin_scenes()
@@ -343,12 +341,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         sys.stderr.write(f"{PROG}: note: no snapshot at {', '.join(map(str, early))}: the render already has "
                          f"{job.start} passes\n")
 
+    from ..api import stamp_header
     from .state import save_with_state, scene_record, settings_record, state_path
 
     def write_file(path: str | Path, result) -> None:
-        result.header["ppmrecon.variant"] = variant
-        if job.loaded.notes:
-            result.header[B.H_IMPORT_NOTES] = B.encode_notes(job.loaded.notes)
+        stamp_header(result.header, variant, job.loaded.notes)
         if single:
             B.write_rgb(path, result.estimates[0], header=result.header)
         else:

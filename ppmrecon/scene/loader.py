@@ -23,8 +23,9 @@ import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Mapping
 
+from ..data import SCENES
 from .common import (Context, Lines, SceneError, describe, ensure_variant, mitsuba_error_line,
                      parse_xml)
 
@@ -32,7 +33,8 @@ if TYPE_CHECKING:  # pragma: no cover
     import mitsuba as mi
 
 DEFAULT_SCENE = "cornell_caustics"
-SCENES_DIR = Path(__file__).resolve().parents[2] / "configs" / "scenes"
+#: The built-in scenes travel inside the package (ppmrecon/data/scenes).
+SCENES_DIR = SCENES
 
 #: Emitters the photon pass samples, each checked by an energy test against Mitsuba 3's
 #: `path` (tests/test_scene_families.py). `directionalarea` samples rays too, but `path`
@@ -93,7 +95,7 @@ class LoadedScene:
 
 
 def builtin_scenes() -> dict[str, Path]:
-    """Built-in scene names -> XML paths (every ``configs/scenes/*.xml``)."""
+    """Built-in scene names -> XML paths (every ``ppmrecon/data/scenes/*.xml``)."""
     if not SCENES_DIR.is_dir():
         return {}
     return {p.stem: p for p in sorted(SCENES_DIR.glob("*.xml"))}
@@ -395,17 +397,21 @@ def _locate(message: str, root: ET.Element, lines: Lines | None) -> str | None:
     return None
 
 
-def load_scene(spec: str | os.PathLike | None,
+def load_scene(spec: "str | os.PathLike | None | mi.Scene | Mapping[str, Any]",
                resolution: tuple[int, int] | int | None = None,
                warn: bool = True) -> LoadedScene:
     """Load a scene for the renderer.
 
     ``spec``: None (the default built-in scene), a built-in name (see
-    :func:`builtin_scenes`), or a path to a Mitsuba 3 or Mitsuba 0.6 XML file.
+    :func:`builtin_scenes`), a path to a Mitsuba 3 or Mitsuba 0.6 XML file, or what a
+    Mitsuba 3 script has: a loaded ``mi.Scene`` or a scene dict for ``mi.load_dict``
+    (see :func:`load_mitsuba`).
     ``resolution``: (W, H) overrides the film size; an int W keeps the film's aspect.
     ``warn``: print each import note as a warning line on stderr.
     Raises :class:`SceneError` (a usage error, one line) on any problem.
     """
+    if isinstance(spec, Mapping) or type(spec).__name__ == "Scene":
+        return load_mitsuba(spec, resolution=resolution)
     name, path, is_builtin = _resolve_spec(spec)
     label = name if is_builtin else os.fspath(spec)
     try:
@@ -468,6 +474,115 @@ def load_tree(root: ET.Element, name: str, path: Path | None, label: str | None 
     return LoadedScene(scene=scene, name=name, path=path, width=int(size[0]), height=int(size[1]),
                        max_depth=max_depth, integrator_params=params,
                        source_version=version_text or "", notes=notes, content_hash=digest.hexdigest())
+
+
+# --------------------------------------------------------------------------- Mitsuba 3 objects
+
+#: Mitsuba 3 class names (``str(obj)`` up to ``[``) of the emitter and sensor types above.
+EMITTER_CLASSES = {"AreaLight": "area", "PointLight": "point", "SpotLight": "spot",
+                   "DirectionalEmitter": "directional", "EnvironmentMapEmitter": "envmap",
+                   "ConstantBackgroundEmitter": "constant", "SunskyEmitter": "sunsky", "Projector": "projector"}
+SENSOR_CLASSES = {"PerspectiveCamera": "perspective", "ThinLensCamera": "thinlens",
+                  "OrthographicCamera": "orthographic"}
+_INT_FIELD = r"\b{}\s*=\s*(-?\d+)"
+
+
+def _class_name(obj: Any) -> str:
+    # Mitsuba 3 objects print as "ClassName[...]"; their Python type is only the base class.
+    return str(obj).split("[", 1)[0].strip()
+
+
+def _dict_with_resolution(scene: Mapping[str, Any], resolution: tuple[int, int] | int | None,
+                          label: str) -> dict[str, Any]:
+    """A copy of a scene dict whose sensors' films have the size ``resolution`` (the
+    user's dict is left as it was; only the copied levels are changed)."""
+    out = dict(scene)
+    if resolution is None:
+        return out
+    for key, value in scene.items():
+        if not (isinstance(value, Mapping) and value.get("type") in SUPPORTED_SENSORS):
+            continue
+        film = dict(value.get("film") or {"type": "hdrfilm"})
+        if isinstance(resolution, int):  # keep the film's aspect ratio (hdrfilm's default 768x576)
+            w, h = int(film.get("width", 768)), int(film.get("height", 576))
+            size = (resolution, max(1, round(resolution * h / w)))
+        else:
+            size = resolution
+        film["width"], film["height"] = int(size[0]), int(size[1])
+        film.pop("crop_width", None), film.pop("crop_height", None)
+        film.pop("crop_offset_x", None), film.pop("crop_offset_y", None)
+        out[key] = dict(value, film=film)
+    return out
+
+
+def check_mitsuba_scene(scene: "mi.Scene", label: str) -> None:
+    """Refuse what the renderer does not simulate in a loaded ``mi.Scene``, as
+    :func:`refuse_unsupported` does for files: media, other emitter and sensor types."""
+    for shape in scene.shapes():
+        if shape.interior_medium() is not None or shape.exterior_medium() is not None:
+            raise SceneError(f"{label}: shape {_class_name(shape)} has an interior/exterior medium: "
+                             "participating media are not simulated by the ppmrecon renderer")
+    if not scene.emitters():
+        raise SceneError(f"{label}: the scene has no emitter: there is nothing to trace photons from")
+    for emitter in scene.emitters():
+        if _class_name(emitter) not in EMITTER_CLASSES:
+            raise SceneError(f"{label}: emitter {_class_name(emitter)} is not supported by the ppmrecon renderer "
+                             f"(supported: {', '.join(SUPPORTED_EMITTERS)})")
+    if not scene.sensors():
+        raise SceneError(f"{label}: the scene has no sensor")
+    sensor = scene.sensors()[0]
+    if _class_name(sensor) not in SENSOR_CLASSES:
+        raise SceneError(f"{label}: sensor {_class_name(sensor)} is not supported by the ppmrecon renderer "
+                         f"(supported: {', '.join(SUPPORTED_SENSORS)})")
+
+
+def load_mitsuba(scene: "mi.Scene | Mapping[str, Any]", resolution: tuple[int, int] | int | None = None,
+                 name: str = "mitsuba_scene") -> LoadedScene:
+    """Adapt what a Mitsuba 3 script builds: a loaded ``mi.Scene`` or a scene dict
+    (``{"type": "scene", ...}``, loaded here with ``mi.load_dict``).
+
+    The scene must be loaded under a variant the renderer runs (``llvm_ad_rgb`` or
+    ``cuda_ad_rgb``); with a dict, one is activated if none is. ``resolution`` sets the
+    film size of a dict; a loaded ``mi.Scene`` keeps its own (a film cannot be resized
+    after loading). ``max_depth``/``rr_depth`` are read from the scene's integrator when
+    it has one that states them (Mitsuba's ``path``, ``volpath``, ...), as for files.
+    A scene given as an object has no file, so it has no content hash and its renders
+    cannot be resumed from a state file.
+    """
+    from ..backend import VARIANTS
+
+    if isinstance(scene, Mapping):
+        if scene.get("type") != "scene":
+            raise SceneError(f"{name}: a Mitsuba scene dict needs \"type\": \"scene\", got {scene.get('type')!r}")
+        ensure_variant()
+    elif resolution is not None:
+        raise SceneError(f"{name}: resolution= applies to scene files and dicts; a loaded mi.Scene keeps its "
+                         "film size (set the film's width/height before loading it)")
+    import mitsuba as mi
+
+    if mi.variant() not in VARIANTS:
+        raise SceneError(f"{name}: Mitsuba variant {mi.variant()} is active; the ppmrecon renderer runs "
+                         f"{' or '.join(VARIANTS)} (mi.set_variant before building the scene)")
+    if isinstance(scene, Mapping):
+        try:
+            scene = mi.load_dict(_dict_with_resolution(scene, resolution, name))
+        except Exception as exc:  # Mitsuba raises RuntimeError; anything else is the same to the user
+            raise SceneError(f"{name}: {mitsuba_error_line(exc)}") from None
+    elif not isinstance(scene, mi.Scene):
+        raise SceneError(f"{name}: expected a mi.Scene of the active variant {mi.variant()}, "
+                         f"got {type(scene).__module__}.{type(scene).__name__}")
+    check_mitsuba_scene(scene, name)
+    integrator = scene.integrator()
+    text = "" if integrator is None else str(integrator)
+    params: dict[str, Any] = {"type": _class_name(integrator)} if integrator is not None else {}
+    max_depth = None
+    if m := re.search(_INT_FIELD.format("max_depth"), text):
+        max_depth = int(m.group(1))
+    if m := re.search(_INT_FIELD.format("rr_depth"), text):
+        params["rr_depth"] = int(m.group(1))
+    size = scene.sensors()[0].film().size()
+    return LoadedScene(scene=scene, name=name, path=None, width=int(size[0]), height=int(size[1]),
+                       max_depth=max_depth, integrator_params=params)
 
 
 def check_report(loaded: LoadedScene) -> str:

@@ -1,7 +1,10 @@
 """``ppmrecon-train``: generate training data, then train the kernel-predicting network.
 
-    ppmrecon-train generate --config configs/data/v2_cpu.json --out data/v2_cpu [--workers 2]
-    ppmrecon-train fit data/cpu --out runs/cpu [--config configs/train/cpu.json] [--resume]
+    ppmrecon-train generate --config v2_cpu --out data/v2_cpu [--workers 2]
+    ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
+
+``--config`` takes a JSON file or the name of one that ships with the package
+(``ppmrecon/data/configs/data/*.json`` for ``generate``, ``.../train/*.json`` for ``fit``).
 
 ``generate`` renders randomised scenes (never the literature scenes) into buffer files
 and references with a manifest; it is resumable. ``fit`` trains on 64x64 augmented
@@ -10,6 +13,7 @@ patches with the loss of paper 002 Eq. 8 and writes a checkpoint every epoch.
 
 from __future__ import annotations
 
+import argparse
 import sys
 from pathlib import Path
 from typing import Sequence
@@ -17,10 +21,29 @@ from typing import Sequence
 import numpy as np
 
 from ..cli_common import ArgumentParser, positive_float, positive_int, run_main
+from ..data import CONFIGS
 from ..errors import UsageError
 
 PROG = "ppmrecon-train"
-CONFIGS = Path(__file__).resolve().parents[2] / "configs"
+
+
+def builtin_configs(kind: str) -> dict[str, Path]:
+    """Config names -> files shipped in ``ppmrecon/data/configs/<kind>/`` (kind: data, train)."""
+    return {p.stem: p for p in sorted((CONFIGS / kind).glob("*.json"))}
+
+
+def config_file(kind: str):
+    """argparse type: a JSON path, or the name of a shipped ``kind`` config."""
+    def parse(text: str) -> Path:
+        shipped = builtin_configs(kind)
+        if text in shipped:
+            return shipped[text]
+        path = Path(text)
+        if not path.is_file():
+            raise argparse.ArgumentTypeError(f"'{text}' is neither a file nor a shipped {kind} config "
+                                             f"({', '.join(shipped) or 'none found'})")
+        return path
+    return parse
 
 
 def build_parser() -> ArgumentParser:
@@ -28,9 +51,10 @@ def build_parser() -> ArgumentParser:
     sub = p.add_subparsers(dest="command", metavar="{generate,fit}", parser_class=ArgumentParser)
     g = sub.add_parser("generate", help="render a training data set (resumable)",
                        description="Render randomised training scenes into buffer files + references.")
-    g.add_argument("--config", type=Path, default=CONFIGS / "data" / "cpu.json",
-                   help="data-set budgets (default: configs/data/cpu.json; the issue-12 sets are "
-                        "configs/data/v2.json and v2_cpu.json)")
+    g.add_argument("--config", type=config_file("data"), default=builtin_configs("data").get("cpu"),
+                   metavar="NAME|FILE.json",
+                   help=f"data-set budgets: a JSON file or a shipped set ({', '.join(builtin_configs('data'))}; "
+                        f"default: cpu; the issue-12 sets are v2 and v2_cpu)")
     g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
     g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2)")
     g.add_argument("--scenes", type=positive_int, default=None, help="override the number of scenes")
@@ -43,7 +67,9 @@ def build_parser() -> ArgumentParser:
                        description="Train the kernel-predicting network (paper 002 Sec. 4.3).")
     f.add_argument("data", type=Path, help="data-set folder made by `ppmrecon-train generate`")
     f.add_argument("--out", type=Path, required=True, help="run folder (model.pt, best.pt, history.json)")
-    f.add_argument("--config", type=Path, default=None, help="training config JSON (default: built-in defaults)")
+    f.add_argument("--config", type=config_file("train"), default=None, metavar="NAME|FILE.json",
+                   help=f"training settings: a JSON file or a shipped config "
+                        f"({', '.join(builtin_configs('train'))}; default: built-in defaults)")
     f.add_argument("--preset", default=None, help="model preset name or JSON path (overrides the config)")
     f.add_argument("--epochs", type=positive_int, default=None)
     f.add_argument("--steps-per-epoch", type=positive_int, default=None)

@@ -68,7 +68,7 @@ LEGACY_CONFIG: dict[str, Any] = {"families": list(LEGACY_FAMILIES), "radiance_lo
 
 @dataclass
 class DataConfig:
-    """Budgets of a generated data set (``configs/data/*.json``)."""
+    """Budgets of a generated data set (``ppmrecon/data/configs/data/*.json``)."""
 
     scenes: int = 24
     first_seed: int = 1000

@@ -6,7 +6,7 @@ wavelength 0.35-0.8) whose curvature focuses light about 0.5-0.8 below the surfa
 the caustic network is sharp on the pool floor. Vertex normals are analytic (smooth
 shading), faces are triangles. Deterministic; run from anywhere:
 
-    python configs/scenes/make_water_surface.py
+    python ppmrecon/data/scenes/make_water_surface.py
 """
 
 from __future__ import annotations
