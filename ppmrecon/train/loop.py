@@ -47,7 +47,7 @@ HISTORY = "history.json"
 
 @dataclass
 class TrainConfig:
-    """Training settings (``configs/train/*.json``); paper defaults where it gives them."""
+    """Training settings (``ppmrecon/data/configs/train/*.json``, ``--config NAME``); paper defaults where it gives them."""
 
     preset: str = "tiny"
     features: dict[str, bool] = field(default_factory=dict)
