@@ -464,15 +464,16 @@ class FPPMController(ChainState):
 #: APPM defaults: bounds of r relative to each chain's initial radius r_1, and r'_max / r_1.
 APPM_R_MIN_FRAC = 0.1
 APPM_R_MAX_FRAC = 2.0
-APPM_RP_MAX_FRAC = 0.5
+APPM_RP_MAX_FRAC = 4.0
 
 
 @dataclass
 class APPMController(ChainState):
     """Adaptive PPM (Kaplanyan and Dachsbacher 2013, paper 001 Sec. 6-7; formulas in
     :mod:`.appm`): after every pass each chain of each pixel gets the plug-in bandwidth
-    of Eq. 6.4 from recursive estimates of E[psi^2] (or Var[psi]), the light-path
-    density p_l and the Laplacian Delta I (Eq. 6.5-6.6, with its own bandwidth r' from
+    of Eq. 6.4 from recursive estimates of E[psi^2] (or Var[psi] with ``variance=
+    "paper"``), the light-path density p_l and the Laplacian Delta I (its square without
+    the noise of its mean unless ``laplacian="paper"``; see :mod:`.appm`) (Eq. 6.5-6.6, with its own bandwidth r' from
     Silverman's rule, Eq. 6.7), all from the sums the one shared gather files per chain.
 
     Per pixel and chain the state is that of Sec. 7: E[psi] (``_psi``), p_l E[c^2]
@@ -490,11 +491,16 @@ class APPMController(ChainState):
     roles and the cost of the first pass) and r'_1 = r'_max.
 
     Bounds (Sec. 6.4), per chain: r_{N} in [r_min_frac, r_max_frac] r_1 N^(-1/6) and
-    r'_N in [r_min_frac, 1] r'_max N^(-1/8), r'_max = rp_max_frac r_1 (0.5: the
-    Laplacian's support 2 r' is at most the chain's first gather radius). The paper
-    bounds by 1e-6 and 0.1 scene radii; relative to r_1 the upper bound keeps the gather
-    cost near that of the other methods on flat walls, where the Laplacian is ~0 and r
-    sits at r_max. Consistency by construction (Eq. 4.2, d = 2): for the value
+    r'_N in [r_min_frac, 1] r'_max N^(-1/8), r'_max = rp_max_frac r_ref, r_ref = r_1 /
+    scale_c the reference chain's initial radius (the same for all chains of a hit
+    point). The paper bounds r by 1e-6 and 0.1 scene radii and starts r' at 0.1 scene
+    radii; relative to r_1 the upper bound of r keeps the gather cost near that of the
+    other methods on flat walls, where the Laplacian is ~0 and r sits at r_max. r' must be
+    much larger than r: the Laplacian's noise grows as r'^-3 (measured on
+    ``cornell_caustics``/``water_caustic`` at 32x32: with r'_max = 0.5 r_ref the
+    Laplacian was indistinguishable from noise at caustic edges and on walls alike; with
+    4 r_ref, the default, caustic edges stand out), at the price of a gather that
+    searches 2 r' (8 r_ref at pass 1). Consistency by construction (Eq. 4.2, d = 2): for the value
     (lambda = 0), (1/N^2) sum r_i^-2 <= (r_min_frac r_1)^-2 N^(-2/3) -> 0 and
     (1/N) sum r_i^2 <= (r_max_frac r_1)^2 N^(-1/3) -> 0; for the Laplacian (lambda = 4,
     Sec. 6.3), (1/N^2) sum r'_i^-6 -> 0 as N^(-1/4) and (1/N) sum r'_i^2 -> 0 as
@@ -505,6 +511,8 @@ class APPMController(ChainState):
     r_max_frac: float = APPM_R_MAX_FRAC
     rp_max_frac: float = APPM_RP_MAX_FRAC
     variance: str = "full"
+    laplacian: str = "debiased"
+    laplacian_z: float = 2.0
     photons: int = 1 << 17
     kernel: str = "constant"
     name: str = "appm"
@@ -523,6 +531,10 @@ class APPMController(ChainState):
             raise ValueError(f"rp_max_frac must be positive, got {self.rp_max_frac}")
         if self.variance not in A.VARIANCES:
             raise ValueError(f"variance must be one of {', '.join(A.VARIANCES)}, got '{self.variance}'")
+        if not 0.0 <= self.laplacian_z < math.inf:
+            raise ValueError(f"laplacian_z must be >= 0, got {self.laplacian_z}")
+        if self.laplacian not in A.LAPLACIANS:
+            raise ValueError(f"laplacian must be one of {', '.join(A.LAPLACIANS)}, got '{self.laplacian}'")
         if int(self.photons) != self.photons or self.photons <= 0:
             raise ValueError(f"photons must be a positive integer, got {self.photons}")
         self.k2, self.roughness = kernel_moments(self.kernel)
@@ -536,7 +548,10 @@ class APPMController(ChainState):
         n = dr.width(r1[0])
         self._r = [mi.Float(r) for r in r1]
         self._r1 = [mi.Float(r) for r in r1]
-        self._rp = [mi.Float(r) * self.rp_max_frac for r in r1]
+        # r'_max from the reference chain's radius r_1 / scale_c: every chain at a hit point
+        # shares the Laplacian's bounds (the Laplacian is the pixel's, not the chain's).
+        scales = self._scales(len(r1))
+        self._rp = [mi.Float(r) * (self.rp_max_frac / s) for r, s in zip(r1, scales)]
         for attr in ("_psi", "_psi2", "_density", "_lap", "_lap2"):
             setattr(self, attr, [dr.zeros(mi.Float, n) for _ in r1])
         self._pass = [APPMStatistics(rp) for rp in self._rp]
@@ -554,6 +569,7 @@ class APPMController(ChainState):
 
     def update(self, pass_index: int, results: Any) -> None:
         # Per-pass literals enter as opaque values: one compiled kernel for every pass.
+        n_done = dr.opaque(mi.Float64, float(pass_index))
         inv_i = dr.opaque(mi.Float64, 1.0 / pass_index)
         n_next = dr.opaque(mi.Float64, pass_index + 1.0)
         value_rate = dr.opaque(mi.Float64, (pass_index + 1.0) ** A.RATE_VALUE)
@@ -569,11 +585,14 @@ class APPMController(ChainState):
                 m = _float64(getattr(self, attr)[c])
                 means[attr] = m + (x - m) * inv_i
             r1 = _float64(self._r1[c])
-            rp_max = r1 * self.rp_max_frac
-            rp = A.silverman_radius(means["_lap"], means["_lap2"], r1, n_next, DRJIT_OPS)
+            unit = r1 * (1.0 / scales[c])  # the reference chain's initial radius
+            rp_max = unit * self.rp_max_frac
+            rp = A.silverman_radius(means["_lap"], means["_lap2"], unit, n_done, n_next, DRJIT_OPS)
             rp = A.bounded(rp, rp_max * self.r_min_frac * lap_rate, rp_max * lap_rate, DRJIT_OPS)
             moment = A.psi_moment(means["_psi"], means["_psi2"], means["_density"], self.variance, DRJIT_OPS)
-            r = A.plugin_radius(moment, means["_lap"], n_next, self.photons, self.k2, self.roughness, DRJIT_OPS)
+            lap2 = A.laplacian_square(means["_lap"], means["_lap2"], n_done, self.laplacian,
+                                      self.laplacian_z, DRJIT_OPS)
+            r = A.plugin_radius(moment, lap2, n_next, self.photons, self.k2, self.roughness, DRJIT_OPS)
             r = A.bounded(r * scales[c], r1 * self.r_min_frac * value_rate, r1 * self.r_max_frac * value_rate,
                           DRJIT_OPS)
             for attr, m in means.items():
@@ -585,7 +604,9 @@ class APPMController(ChainState):
     def header(self) -> dict[str, Any]:
         return {"ppmrecon.method": self.name, "ppmrecon.appm.r_min_frac": self.r_min_frac,
                 "ppmrecon.appm.r_max_frac": self.r_max_frac, "ppmrecon.appm.rp_max_frac": self.rp_max_frac,
-                "ppmrecon.appm.variance": self.variance, "ppmrecon.appm.laplacian_kernel": "perlin",
+                "ppmrecon.appm.variance": self.variance, "ppmrecon.appm.laplacian": self.laplacian,
+                "ppmrecon.appm.laplacian_z": self.laplacian_z,
+                "ppmrecon.appm.laplacian_kernel": "perlin",
                 "ppmrecon.appm.silverman": A.SILVERMAN_PERLIN}
 
 
