@@ -95,7 +95,7 @@ def test_plugin_bandwidth_matches_closed_form(kernel):
 def feed(ctrl, pass_index, sums):
     """Give the controller one pass of per-pixel sums (D, A, Q, Lap, each times J)."""
     data = np.stack([np.asarray(s, np.float32) * ctrl.photons for s in sums], axis=1).ravel()
-    ctrl._pass[0].data = mi.Float(data)
+    ctrl.stats_targets([0])[0].data = mi.Float(data)
     ctrl.update(pass_index, [([0], None)])
 
 
@@ -158,11 +158,20 @@ def test_chains_keep_their_roles():
     ctrl = APPMController(photons=1000, r_min_frac=1e-3, r_max_frac=100.0)
     ctrl.start([mi.Float([0.1 * s]) for s in CHAIN_SCALES])
     sums = np.array([[1.0], [0.5], [0.5], [3.0]], np.float32) * 1000
-    for c in range(5):
-        ctrl._pass[c].data = mi.Float(sums.T.ravel())
-    ctrl.update(1, [([0], None), ([1, 2, 3, 4], None)])
+    for group in ([0], [1, 2, 3, 4]):
+        for k, st in enumerate(ctrl.stats_targets(group)):
+            assert st.laplacian == (k == 0)  # one Laplacian per hit point
+            st.data = mi.Float(sums.T.ravel() * np.array([1, 1, 1, k == 0], np.float32))
+    for i in (1, 2):  # Var[Lap] needs two passes
+        if i == 2:
+            for group in ([0], [1, 2, 3, 4]):
+                for k, st in enumerate(ctrl.stats_targets(group)):
+                    st.data = mi.Float(sums.T.ravel() * np.array([1, 1, 1, (k == 0) * 1.5], np.float32))
+        ctrl.update(i, [([0], None), ([1, 2, 3, 4], None)])
     r = np.array([float(np.asarray(x)[0]) for x in ctrl.radii()])
     np.testing.assert_allclose(r / r[1], np.array(CHAIN_SCALES) / CHAIN_SCALES[1], rtol=1e-5)
+    rp = [float(np.asarray(x)[0]) for x in ctrl._rp]
+    assert rp[1] == rp[2] == rp[3] == rp[4]
 
 
 def test_options_and_errors():

@@ -193,17 +193,20 @@ class CellStatistics:
 
 class APPMStatistics:
     """Per-pixel sums of one pass for APPM (one chain): sum K_r, sum K_r c, sum K_r c^2
-    over the photons inside the chain's radius r and sum c w_lap over those within
-    2 r' (see :mod:`.appm`; c = luminance(beta f Phi)). Layout [pixel][4]: one photon is
-    one scatter of 4 adjacent values (a 4-vector at index ``pixel``). ``rp`` is the Laplacian bandwidth r' of each
-    pixel, ``reach`` = 2 r' the distance the gather must search for it."""
+    over the photons inside the chain's radius r and, with ``laplacian``, sum c w_lap
+    over those within 2 r' (see :mod:`.appm`; c = luminance(beta f Phi)). Layout
+    [pixel][4]: one photon is one scatter of 4 adjacent values (a 4-vector at index
+    ``pixel``). ``rp`` is the Laplacian bandwidth r' of each pixel, ``reach`` = 2 r' the
+    distance the gather must search for it (None without ``laplacian``: the chains of
+    one hit point share r' and so the Laplacian, which only the first computes)."""
 
     kind = "appm"
     N_SUMS = 4
 
-    def __init__(self, rp: mi.Float):
+    def __init__(self, rp: mi.Float, laplacian: bool = True):
         self.rp = rp
-        self.reach = 2.0 * rp
+        self.laplacian = laplacian
+        self.reach = 2.0 * rp if laplacian else None
         self.n_pixels = dr.width(rp)
         self.data = dr.zeros(mi.Float, self.n_pixels * self.N_SUMS)
 
@@ -212,12 +215,15 @@ class APPMStatistics:
         """One photon per lane: tangent offset (u, v), kernel weight K_r (valid where
         ``inside`` the radius), contribution c; ``active``: it passed the gather's checks.
         Each lane owns its pixel, so the scatters never conflict."""
-        w_lap = A.laplacian_weight(u, v, self.rp, DRJIT_OPS)
-        near = active & (u * u + v * v < self.reach * self.reach)
         k = dr.select(inside, weight, 0.0)
-        value = mi.ArrayXf(k, k * c, k * c * c, dr.select(near, c * w_lap, 0.0))
-        dr.scatter_reduce(dr.ReduceOp.Add, self.data, value, pixel, inside | near,
-                          mode=dr.ReduceMode.NoConflicts)
+        if self.laplacian:
+            w_lap = A.laplacian_weight(u, v, self.rp, DRJIT_OPS)
+            near = active & (u * u + v * v < self.reach * self.reach)
+            lap, where = dr.select(near, c * w_lap, 0.0), inside | near
+        else:
+            lap, where = mi.Float(0.0), inside
+        value = mi.ArrayXf(k, k * c, k * c * c, lap)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.data, value, pixel, where, mode=dr.ReduceMode.NoConflicts)
 
     def sums(self) -> list[Any]:
         """The four per-pixel sums (float64): sum K, sum K c, sum K c^2, sum c w_lap."""
@@ -464,7 +470,7 @@ class FPPMController(ChainState):
 #: APPM defaults: bounds of r relative to each chain's initial radius r_1, and r'_max / r_1.
 APPM_R_MIN_FRAC = 0.1
 APPM_R_MAX_FRAC = 2.0
-APPM_RP_MAX_FRAC = 4.0
+APPM_RP_MAX_FRAC = 2.0
 
 
 @dataclass
@@ -554,17 +560,18 @@ class APPMController(ChainState):
         self._rp = [mi.Float(r) * (self.rp_max_frac / s) for r, s in zip(r1, scales)]
         for attr in ("_psi", "_psi2", "_density", "_lap", "_lap2"):
             setattr(self, attr, [dr.zeros(mi.Float, n) for _ in r1])
-        self._pass = [APPMStatistics(rp) for rp in self._rp]
         dr.eval(self._rp)
-
-    def load_state(self, arrays: dict[str, Any]) -> None:
-        super().load_state(arrays)
-        self._pass = [APPMStatistics(rp) for rp in self._rp]
 
     def radii(self) -> list[mi.Float]:
         return self._r
 
     def stats_targets(self, chains: Sequence[int]) -> list[APPMStatistics]:
+        """This pass's sums for the chains of one hit point: the first (the group's lead)
+        also estimates the Laplacian, with its r', for all of them."""
+        if not hasattr(self, "_pass"):
+            self._pass = {}
+        for k, c in enumerate(chains):
+            self._pass[c] = APPMStatistics(self._rp[chains[0]], laplacian=k == 0)
         return [self._pass[c] for c in chains]
 
     def update(self, pass_index: int, results: Any) -> None:
@@ -576,30 +583,40 @@ class APPMController(ChainState):
         lap_rate = dr.opaque(mi.Float64, (pass_index + 1.0) ** A.RATE_LAPLACIAN)
         inv_j = 1.0 / self.photons
         scales = self._scales(len(self._r))
-        chains = sorted({c for chains, _ in results for c in chains})
-        for c in chains:
-            d, a, q, lap = (x * inv_j for x in self._pass[c].sums())
-            # Running means over the passes (the recursive estimators of Eq. 4.1 / 6.5).
-            means = {}
-            for attr, x in (("_psi", a), ("_psi2", q), ("_density", d), ("_lap", lap), ("_lap2", lap * lap)):
-                m = _float64(getattr(self, attr)[c])
-                means[attr] = m + (x - m) * inv_i
-            r1 = _float64(self._r1[c])
-            unit = r1 * (1.0 / scales[c])  # the reference chain's initial radius
+        for chains, _ in results:
+            lap = self._pass[chains[0]].sums()[3] * inv_j  # the group's shared Laplacian
+            for c in chains:
+                self._update_chain(c, chains[0], lap, inv_i, n_done, n_next, value_rate, lap_rate, scales[c])
+        self._pass = {}
+
+    def _update_chain(self, c: int, lead: int, lap: Any, inv_i: Any, n_done: Any, n_next: Any,
+                      value_rate: Any, lap_rate: Any, scale: float) -> None:
+        """Fold pass sums into chain c's running means, then its r' (the lead's, Eq. 6.7)
+        and r (Eq. 6.4), both bounded (Sec. 6.4)."""
+        inv_j = 1.0 / self.photons
+        d, a, q, _ = (x * inv_j for x in self._pass[c].sums())
+        # Running means over the passes (the recursive estimators of Eq. 4.1 / 6.5).
+        means = {}
+        for attr, x in (("_psi", a), ("_psi2", q), ("_density", d), ("_lap", lap), ("_lap2", lap * lap)):
+            m = _float64(getattr(self, attr)[c])
+            means[attr] = m + (x - m) * inv_i
+        r1 = _float64(self._r1[c])
+        if c == lead:
+            unit = r1 * (1.0 / scale)  # the reference chain's initial radius
             rp_max = unit * self.rp_max_frac
             rp = A.silverman_radius(means["_lap"], means["_lap2"], unit, n_done, n_next, DRJIT_OPS)
-            rp = A.bounded(rp, rp_max * self.r_min_frac * lap_rate, rp_max * lap_rate, DRJIT_OPS)
-            moment = A.psi_moment(means["_psi"], means["_psi2"], means["_density"], self.variance, DRJIT_OPS)
-            lap2 = A.laplacian_square(means["_lap"], means["_lap2"], n_done, self.laplacian,
-                                      self.laplacian_z, DRJIT_OPS)
-            r = A.plugin_radius(moment, lap2, n_next, self.photons, self.k2, self.roughness, DRJIT_OPS)
-            r = A.bounded(r * scales[c], r1 * self.r_min_frac * value_rate, r1 * self.r_max_frac * value_rate,
-                          DRJIT_OPS)
-            for attr, m in means.items():
-                getattr(self, attr)[c] = mi.Float(m)
-            self._r[c], self._rp[c] = mi.Float(r), mi.Float(rp)
-            dr.eval(self._r[c], self._rp[c], *(getattr(self, attr)[c] for attr in means))
-            self._pass[c] = APPMStatistics(self._rp[c])
+            self._rp[c] = mi.Float(A.bounded(rp, rp_max * self.r_min_frac * lap_rate, rp_max * lap_rate, DRJIT_OPS))
+        else:  # computed from the same moments: the lead's, exactly
+            self._rp[c] = self._rp[lead]
+        moment = A.psi_moment(means["_psi"], means["_psi2"], means["_density"], self.variance, DRJIT_OPS)
+        lap2 = A.laplacian_square(means["_lap"], means["_lap2"], n_done, self.laplacian,
+                                  self.laplacian_z, DRJIT_OPS)
+        r = A.plugin_radius(moment, lap2, n_next, self.photons, self.k2, self.roughness, DRJIT_OPS)
+        r = A.bounded(r * scale, r1 * self.r_min_frac * value_rate, r1 * self.r_max_frac * value_rate, DRJIT_OPS)
+        for attr, m in means.items():
+            getattr(self, attr)[c] = mi.Float(m)
+        self._r[c] = mi.Float(r)
+        dr.eval(self._r[c], self._rp[c], *(getattr(self, attr)[c] for attr in means))
 
     def header(self) -> dict[str, Any]:
         return {"ppmrecon.method": self.name, "ppmrecon.appm.r_min_frac": self.r_min_frac,

@@ -31,7 +31,8 @@ APPM's targets (:class:`.controllers.APPMStatistics`) take each photon instead w
 tangent-plane offset, kernel weight and luminance contribution c = luminance(beta f Phi)
 (in pixel units, beta = the eye path's throughput): the sums of K, K c and K c^2 inside
 the chain's radius and of c w_lap within 2 r' (paper 001 Eq. 5.4, 6.5; see
-:mod:`ppmrecon.render.appm`). Their ``reach`` 2 r' widens the search where it exceeds
+:mod:`ppmrecon.render.appm`; only the first chain of a hit point estimates the
+Laplacian, the others share it). Its ``reach`` 2 r' widens the search where it exceeds
 the chain's radius.
 
 The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
@@ -87,7 +88,7 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         r_search = dr.maximum(r_search, r)
     appm = [st is not None and getattr(st, "kind", None) == "appm" for st in (stats or [])]
     for st, is_appm in zip(stats or [], appm):
-        if is_appm:  # the Laplacian's stencil reaches 2 r' (paper 001 Eq. 6.5)
+        if is_appm and st.reach is not None:  # the Laplacian's stencil reaches 2 r' (paper 001 Eq. 6.5)
             r_search = dr.maximum(r_search, st.reach)
     r_search = dr.select(gp.found, r_search, 0.0)
     r2 = [r * r for r in radii]
