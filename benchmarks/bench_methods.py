@@ -234,7 +234,9 @@ def markdown(report: dict) -> str:
              f"seed 0. Reference: our SPPM, same layout, {s['ref_passes']} passes "
              f"(seed 1000). CPPM: significance 0.05, k 0.8, beta 1.5625, threshold k-NN 20. FPPM: "
              f"significance 0.01, k 0.7, alpha 2/3, r_min = {s['r_min_frac']} r_1, luminance. APPM: "
-             f"defaults (r in [0.1, 2] r_1 N^(-1/6), r'_max 2 r_ref, debiased Laplacian z 2, E[psi^2]; its 'r_1' columns are the radii after pass 1, on APPM's bound r_max 2^(-1/6) where the Laplacian is flat).", "",
+             f"defaults (r in [0.1, 2] r_1 N^(-1/6), r'_max 2 r_ref, debiased Laplacian z 2, E[psi^2]); "
+             f"its 'r_1' columns are the radii after pass 1, on APPM's bound r_max 2^(-1/6) where the "
+             f"Laplacian is flat.", "",
              "relMSE against passes N (log-log plot: methods.png); `ref noise` is the noise part of the "
              "reference's own relMSE (its Welford variance), a floor below which differences mean nothing.", ""]
     for name, data in report["convergence"].items():
