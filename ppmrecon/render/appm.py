@@ -15,7 +15,9 @@ emitted; (u_j, v_j) the photon's offset in the gather point's tangent frame):
     Q_i   = (1/J) sum_{|x_j - e| < r}  K_r(x_j - e) c_j^2     p_l E[c^2] (Eq. 5.4 with psi^2)
     Lap_i = (1/J) sum_j c_j w_lap(u_j, v_j; r')               Eq. 6.5 + 6.6
 
-and the state holds their running means over the passes (D, A, Q, Lap; the recursive
+(the photons the gather counts: where direct light is estimated apart by MIS, the
+indirect ones only, so the bandwidth trades the bias and variance of the photon part,
+the only part it affects), and the state holds their running means over the passes (D, A, Q, Lap; the recursive
 estimators of Eq. 4.1 / 6.5 are such means) and E[Lap^2] for the variance of the
 Laplacian estimate.
 
