@@ -1,4 +1,4 @@
-"""Bandwidth-controller study (issue 5): SPPM vs CPPM vs FPPM.
+"""Bandwidth-controller study (issues 5, 16): SPPM vs CPPM vs FPPM vs APPM.
 
     .venv/bin/python benchmarks/bench_methods.py [--quick] [--scenes /work/shared/scenes]
                                                  [--out benchmarks/results]
@@ -39,7 +39,7 @@ sys.path.insert(0, str(ROOT))
 
 from ppmrecon.backend import choose_variant  # noqa: E402
 
-METHODS = ("sppm", "cppm", "fppm")
+METHODS = ("sppm", "cppm", "fppm", "appm")
 LITERATURE = (("box", "box/box.xml"), ("cornell-box", "cornell-box/cbox_SPPM.xml"),
               ("cornell-box-spotlight", "cornell-box-spotlight/cbox_SPPM.xml"))
 #: relMSE's +0.01 makes it an absolute MSE on dark images (the spotlight scene's mean is
@@ -208,7 +208,7 @@ def plot(report: dict, path: Path) -> None:
     fig, axes = plt.subplots(1, len(scenes), figsize=(4.2 * len(scenes), 3.6))
     for ax, name in zip(np.atleast_1d(axes), scenes):
         data = report["convergence"][name]
-        for m, style in zip(METHODS, ("o-", "s-", "^-")):
+        for m, style in zip(METHODS, ("o-", "s-", "^-", "d-")):
             c = data["methods"][m]["curve"]
             ax.loglog([p["passes"] for p in c], [p["relmse"] for p in c], style, ms=3, label=m.upper())
         n = [p["passes"] for p in data["methods"]["sppm"]["curve"]]
@@ -227,13 +227,16 @@ def plot(report: dict, path: Path) -> None:
 
 def markdown(report: dict) -> str:
     s = report["settings"]
-    lines = [f"# SPPM vs CPPM vs FPPM ({report['variant']}, {report['cpus']} CPUs shared with other jobs"
+    lines = [f"# SPPM vs CPPM vs FPPM vs APPM ({report['variant']}, {report['cpus']} CPUs shared with other jobs"
              f"{', quick' if s['quick'] else ''})", "",
              f"Single-bandwidth layout (one chain at the second-smallest initial bandwidth, one eye path), "
              f"{s['photons']} photons/pass, width {s['width']} (aspect kept), the scene's path depth, "
              f"seed 0. Reference: our SPPM, same layout, {s['ref_passes']} passes "
              f"(seed 1000). CPPM: significance 0.05, k 0.8, beta 1.5625, threshold k-NN 20. FPPM: "
-             f"significance 0.01, k 0.7, alpha 2/3, r_min = {s['r_min_frac']} r_1, luminance.", "",
+             f"significance 0.01, k 0.7, alpha 2/3, r_min = {s['r_min_frac']} r_1, luminance. APPM: "
+             f"defaults (r in [0.1, 2] r_1 N^(-1/6), r'_max 2 r_ref, debiased Laplacian z 2, E[psi^2]); "
+             f"its 'r_1' columns are the radii after pass 1, on APPM's bound r_max 2^(-1/6) where the "
+             f"Laplacian is flat.", "",
              "relMSE against passes N (log-log plot: methods.png); `ref noise` is the noise part of the "
              "reference's own relMSE (its Welford variance), a floor below which differences mean nothing.", ""]
     for name, data in report["convergence"].items():
@@ -261,6 +264,8 @@ def markdown(report: dict) -> str:
         for row in fc["rows"]:
             p = row["params"]
             label = row["method"].upper()
+            if row["method"] == "appm" and p:
+                label += " as printed (Var[psi], E[Lap]^2)"
             if row["method"] == "fppm":
                 label += f" r_min_frac {p.get('r_min_frac', report['settings']['r_min_frac'])}"
                 label += " per channel" if p.get("per_channel") else ""
@@ -280,11 +285,12 @@ def markdown(report: dict) -> str:
             lines.append(f"| {m.upper()} | {d['seconds_per_pass']:.3f} | {d['gather_update_seconds']:.3f} | "
                          f"{d['ratio_vs_sppm']:.2f}x |")
         lines += ["", "Single layout, from the convergence runs (s/pass relative to SPPM):", "",
-                  "| scene | CPPM | FPPM |", "|---|---|---|"]
+                  "| scene | CPPM | FPPM | APPM |", "|---|---|---|---|"]
         for name, data in report["convergence"].items():
             base = data["methods"]["sppm"]["seconds_per_pass"]
             lines.append(f"| {name} | {data['methods']['cppm']['seconds_per_pass'] / base:.2f}x | "
-                         f"{data['methods']['fppm']['seconds_per_pass'] / base:.2f}x |")
+                         f"{data['methods']['fppm']['seconds_per_pass'] / base:.2f}x | "
+                         f"{data['methods']['appm']['seconds_per_pass'] / base:.2f}x |")
         lines.append("")
     mem = report.get("memory")
     if mem:
@@ -346,7 +352,8 @@ def main() -> None:
     # Five chains on the textured spotlight and the caustic: ~z^4 starts at the k-NN radius
     # (~20 photons a pass), so the tests have power early; FPPM's r_min is varied here.
     runs = [("sppm", None), ("cppm", None), ("fppm", {"r_min_frac": 0.05}), ("fppm", None),
-            ("fppm", {"r_min_frac": 1.0}), ("fppm", {"per_channel": True})]
+            ("fppm", {"r_min_frac": 1.0}), ("fppm", {"per_channel": True}), ("appm", None),
+            ("appm", {"laplacian": "paper", "variance": "paper"})]
     report["five_chain"] = []
     for name, spec in (("cornell-box-spotlight", str(args.scenes / LITERATURE[2][1])),
                        ("water_caustic", "water_caustic")):
@@ -370,7 +377,8 @@ def main() -> None:
     if not args.skip_memory:
         mem_passes = 2 if q else 4
         report["memory"] = [peak_memory(m, p, 1280, 720, mem_passes, 1 << 17)
-                            for m, p in (("fppm", []), ("fppm", ["--per-channel"]), ("cppm", []), ("sppm", []))]
+                            for m, p in (("fppm", []), ("fppm", ["--per-channel"]), ("cppm", []), ("sppm", []),
+                                         ("appm", []))]
         print(f"[{time.perf_counter() - t_start:7.0f}s] memory done", flush=True)
     save()
     plot(report, args.out / "methods.png")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ppmrecon.render.kernels import KERNELS, kernel_weight
+from ppmrecon.render.kernels import KERNELS, kernel_moments, kernel_weight
 
 
 @pytest.mark.parametrize("name", KERNELS)
@@ -23,3 +23,14 @@ def test_gaussian_not_offered():
     assert "gaussian" not in KERNELS
     with pytest.raises(ValueError, match="unknown kernel"):
         kernel_weight("gaussian", 0.1, 1.0)
+
+
+@pytest.mark.parametrize("name", KERNELS)
+def test_moments_match_quadrature(name):
+    """k_2 and R(K) of kernel_moments equal their integrals (midpoint rule, polar)."""
+    n = 400_000
+    rho = (np.arange(n) + 0.5) / n
+    w = kernel_weight(name, rho * rho, 1.0, sqrt=np.sqrt)
+    k2 = float(np.sum(np.pi * rho ** 3 * w) / n)
+    rough = float(np.sum(2 * np.pi * rho * w * w) / n)
+    assert kernel_moments(name) == pytest.approx((k2, rough), rel=1e-6)

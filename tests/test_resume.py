@@ -38,7 +38,7 @@ def assert_same_render(a: Path, b: Path) -> None:
     assert ha == hb
 
 
-@pytest.mark.parametrize("method", ["sppm", "cppm", "fppm"])
+@pytest.mark.parametrize("method", ["sppm", "cppm", "fppm", "appm"])
 def test_resumed_render_equals_uninterrupted(tmp_path, method):
     """3 passes, then --resume --passes 3, equals a 6-pass render with the same seed;
     the snapshot at 2 equals a 2-pass render."""

@@ -132,7 +132,7 @@ def build_parser() -> ArgumentParser:
                    help="radius reduction alpha of SPPM and of FPPM's lower bound (default: 2/3)")
     p.add_argument("--knn", type=positive_int, default=20,
                    help="k of the k-NN initial bandwidth (default: 20; also CPPM's first photon-count threshold)")
-    tests = p.add_argument_group("CPPM / FPPM bandwidth tests (SPEC section 4)")
+    tests = p.add_argument_group("CPPM / FPPM bandwidth tests, APPM bounds (SPEC section 4)")
     tests.add_argument("--significance", type=float, default=None, metavar="P",
                        help="significance level of the chi-squared (cppm, default 0.05) or F test (fppm, default 0.01)")
     tests.add_argument("--shrink-k", type=float, default=None, metavar="K",
@@ -140,7 +140,11 @@ def build_parser() -> ArgumentParser:
     tests.add_argument("--beta", type=float, default=None,
                        help="cppm: growth of the photon-count threshold per shrink (default 1.5625)")
     tests.add_argument("--r-min-frac", type=float, default=None, metavar="F",
-                       help="fppm: r_min as a fraction of each chain's initial radius (default 0.25)")
+                       help="fppm, appm: r_min as a fraction of each chain's initial radius (default 0.25 "
+                            "fppm, 0.1 appm)")
+    tests.add_argument("--r-max-frac", type=float, default=None, metavar="F",
+                       help="appm: r_max as a multiple of each chain's initial radius, bound r_max N^(-1/6) "
+                            "(default 2)")
     tests.add_argument("--per-channel", action="store_true",
                        help="fppm: F-test R, G and B separately (chromatic or textured lights) instead of luminance")
     p.add_argument("--direct", choices=("none", "glossy", "all"), default="all",
@@ -171,7 +175,8 @@ METHOD_OPTIONS: dict[str, tuple[str, tuple[str, ...]]] = {
     "significance": ("significance", ("cppm", "fppm")),
     "shrink_k": ("k", ("cppm", "fppm")),
     "beta": ("beta", ("cppm",)),
-    "r_min_frac": ("r_min_frac", ("fppm",)),
+    "r_min_frac": ("r_min_frac", ("fppm", "appm")),
+    "r_max_frac": ("r_max_frac", ("appm",)),
     "per_channel": ("per_channel", ("fppm",)),
 }
 
@@ -192,6 +197,8 @@ def method_params(args: argparse.Namespace) -> dict:
             raise UsageError(f"{flag} must be at least 1, got {value}")
         if option == "r_min_frac" and not 0.0 < value <= 1.0:
             raise UsageError(f"{flag} must lie in (0, 1], got {value}")
+        if option == "r_max_frac" and not 1.0 <= value < float("inf"):
+            raise UsageError(f"{flag} must be at least 1, got {value}")
         params[param] = value
     return params
 

@@ -15,7 +15,8 @@ Interface (what the pass loop calls):
                                          (chains, GatherResult) per eye hit point
     controller.header() -> dict          method name and parameters for the buffer header
     controller.stats                     which extra gather statistics it needs:
-                                         "none", "counts" (CPPM) or "moments" (FPPM)
+                                         "none", "counts" (CPPM), "moments" (FPPM) or
+                                         "appm" (per-pass sums, :class:`APPMStatistics`)
     controller.state() -> dict           every per-pixel array it holds, by name (for
                                          a render's state file; empty before start)
     controller.load_state(arrays)        the inverse: continue from those arrays
@@ -37,7 +38,9 @@ from typing import Any, Protocol, Sequence
 import drjit as dr
 import mitsuba as mi
 
+from . import appm as A
 from . import hypothesis as H
+from .kernels import kernel_moments
 
 #: The five initial bandwidths relative to the k-NN distance, smallest first
 #: (paper 002 Sec. 4.1): chain 0 is ~y, chains 1..4 are ~z^1..~z^4.
@@ -109,7 +112,7 @@ class ChainState:
                 if dr.width(values[-1]) != n:
                     raise ValueError(f"{self.name} state '{key}' has {dr.width(values[-1])} pixels, not {n}")
             setattr(self, attr, values)
-        if self.stats != "none":
+        if self.stats in ("counts", "moments"):  # APPM's per-pass sums are empty between passes
             stats = []
             for c in range(n_chains):
                 st = self._new_statistics(n)
@@ -186,6 +189,46 @@ class CellStatistics:
         index = dr.arange(mi.UInt32, self.n_pixels * per_pixel)
         dr.scatter(self.data, type(self.data)(0), index, dr.repeat(mask, per_pixel))
         dr.eval(self.data)
+
+
+class APPMStatistics:
+    """Per-pixel sums of one pass for APPM (one chain): sum K_r, sum K_r c, sum K_r c^2
+    over the photons inside the chain's radius r and, with ``laplacian``, sum c w_lap
+    over those within 2 r' (see :mod:`.appm`; c = luminance(beta f Phi)). Layout
+    [pixel][4]: one photon is one scatter of 4 adjacent values (a 4-vector at index
+    ``pixel``). ``rp`` is the Laplacian bandwidth r' of each pixel, ``reach`` = 2 r' the
+    distance the gather must search for it (None without ``laplacian``: the chains of
+    one hit point share r' and so the Laplacian, which only the first computes)."""
+
+    kind = "appm"
+    N_SUMS = 4
+
+    def __init__(self, rp: mi.Float, laplacian: bool = True):
+        self.rp = rp
+        self.laplacian = laplacian
+        self.reach = 2.0 * rp if laplacian else None
+        self.n_pixels = dr.width(rp)
+        self.data = dr.zeros(mi.Float, self.n_pixels * self.N_SUMS)
+
+    def add_photon(self, pixel: mi.UInt32, u: mi.Float, v: mi.Float, weight: mi.Float, c: mi.Float,
+                   inside: mi.Bool, active: mi.Bool) -> None:
+        """One photon per lane: tangent offset (u, v), kernel weight K_r (valid where
+        ``inside`` the radius), contribution c; ``active``: it passed the gather's checks.
+        Each lane owns its pixel, so the scatters never conflict."""
+        k = dr.select(inside, weight, 0.0)
+        if self.laplacian:
+            w_lap = A.laplacian_weight(u, v, self.rp, DRJIT_OPS)
+            near = active & (u * u + v * v < self.reach * self.reach)
+            lap, where = dr.select(near, c * w_lap, 0.0), inside | near
+        else:
+            lap, where = mi.Float(0.0), inside
+        value = mi.ArrayXf(k, k * c, k * c * c, lap)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.data, value, pixel, where, mode=dr.ReduceMode.NoConflicts)
+
+    def sums(self) -> list[Any]:
+        """The four per-pixel sums (float64): sum K, sum K c, sum K c^2, sum c w_lap."""
+        base = dr.arange(mi.UInt32, self.n_pixels) * self.N_SUMS
+        return [_float64(dr.gather(mi.Float, self.data, base + k)) for k in range(self.N_SUMS)]
 
 
 def _per_chain_counts(results: Any) -> list[tuple[int, mi.UInt32]]:
@@ -424,6 +467,166 @@ class FPPMController(ChainState):
                 "ppmrecon.fppm.cells": f"{H.N_ANNULI}x{H.N_SECTORS}"}
 
 
+#: APPM defaults: bounds of r relative to each chain's initial radius r_1, and r'_max / r_1.
+APPM_R_MIN_FRAC = 0.1
+APPM_R_MAX_FRAC = 2.0
+APPM_RP_MAX_FRAC = 2.0
+
+
+@dataclass
+class APPMController(ChainState):
+    """Adaptive PPM (Kaplanyan and Dachsbacher 2013, paper 001 Sec. 6-7; formulas in
+    :mod:`.appm`): after every pass each chain of each pixel gets the plug-in bandwidth
+    of Eq. 6.4 from recursive estimates of E[psi^2] (or Var[psi] with ``variance=
+    "paper"``), the light-path density p_l and the Laplacian Delta I (its square without
+    the noise of its mean unless ``laplacian="paper"``; see :mod:`.appm`) (Eq. 6.5-6.6, with its own bandwidth r' from
+    Silverman's rule, Eq. 6.7), all from the sums the one shared gather files per chain.
+
+    Per pixel and chain the state is that of Sec. 7: E[psi] (``_psi``), p_l E[c^2]
+    (``_psi2``; E[psi^2] = p_l times it), the recursive Laplacian estimate Delta I_N =
+    E[Lap] (``_lap``; Eq. 6.5 is itself a running mean, so it and its first moment are one
+    value) and E[Lap^2] (``_lap2``), the density p_l (``_density``), plus r, r' and the
+    chain's initial radius r_1 that scales its bounds.
+
+    The five chains keep their roles (paper 002 Sec. 4.1): chain c's bandwidth is
+    ``scale_c`` times its own plug-in optimum, with scale_c = CHAIN_SCALES[c] /
+    CHAIN_SCALES[1] (~z^1, the conventional single-bandwidth scale, sits at the optimum;
+    ~y 1/sqrt(2) below it, ~z^2..~z^4 at sqrt(2), 2, 2 sqrt(2)), so the ladder of
+    bandwidths that the reconstruction relies on survives; a single chain uses scale 1.
+    Chain c starts at its k-NN radius r_1 (the paper starts at r_max; ours keeps the
+    roles and the cost of the first pass) and r'_1 = r'_max.
+
+    Bounds (Sec. 6.4), per chain: r_{N} in [r_min_frac, r_max_frac] r_1 N^(-1/6) and
+    r'_N in [r_min_frac, 1] r'_max N^(-1/8), r'_max = rp_max_frac r_ref, r_ref = r_1 /
+    scale_c the reference chain's initial radius (the same for all chains of a hit
+    point). The paper bounds r by 1e-6 and 0.1 scene radii and starts r' at 0.1 scene
+    radii; relative to r_1 the upper bound of r keeps the gather cost near that of the
+    other methods on flat walls, where the Laplacian is ~0 and r sits at r_max. r' must be
+    much larger than r: the Laplacian's noise grows as r'^-3 (measured on
+    ``cornell_caustics``/``water_caustic`` at 32x32: with r'_max = 0.5 r_ref the
+    Laplacian was indistinguishable from noise at caustic edges and on walls alike; with
+    4 r_ref, the default, caustic edges stand out), at the price of a gather that
+    searches 2 r' (8 r_ref at pass 1). Consistency by construction (Eq. 4.2, d = 2): for the value
+    (lambda = 0), (1/N^2) sum r_i^-2 <= (r_min_frac r_1)^-2 N^(-2/3) -> 0 and
+    (1/N) sum r_i^2 <= (r_max_frac r_1)^2 N^(-1/3) -> 0; for the Laplacian (lambda = 4,
+    Sec. 6.3), (1/N^2) sum r'_i^-6 -> 0 as N^(-1/4) and (1/N) sum r'_i^2 -> 0 as
+    N^(-1/4). Scaling a chain by a constant keeps both.
+    """
+
+    r_min_frac: float = APPM_R_MIN_FRAC
+    r_max_frac: float = APPM_R_MAX_FRAC
+    rp_max_frac: float = APPM_RP_MAX_FRAC
+    variance: str = "full"
+    laplacian: str = "debiased"
+    laplacian_z: float = 2.0
+    photons: int = 1 << 17
+    kernel: str = "constant"
+    name: str = "appm"
+    stats: str = "appm"
+    _r: list[mi.Float] = field(default_factory=list)
+
+    STATE = (("_r", "Float"), ("_r1", "Float"), ("_rp", "Float"), ("_psi", "Float"),
+             ("_psi2", "Float"), ("_density", "Float"), ("_lap", "Float"), ("_lap2", "Float"))
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.r_min_frac <= 1.0:
+            raise ValueError(f"r_min_frac must lie in (0, 1], got {self.r_min_frac}")
+        if not 1.0 <= self.r_max_frac < math.inf:
+            raise ValueError(f"r_max_frac must be at least 1, got {self.r_max_frac}")
+        if not 0.0 < self.rp_max_frac < math.inf:
+            raise ValueError(f"rp_max_frac must be positive, got {self.rp_max_frac}")
+        if self.variance not in A.VARIANCES:
+            raise ValueError(f"variance must be one of {', '.join(A.VARIANCES)}, got '{self.variance}'")
+        if not 0.0 <= self.laplacian_z < math.inf:
+            raise ValueError(f"laplacian_z must be >= 0, got {self.laplacian_z}")
+        if self.laplacian not in A.LAPLACIANS:
+            raise ValueError(f"laplacian must be one of {', '.join(A.LAPLACIANS)}, got '{self.laplacian}'")
+        if int(self.photons) != self.photons or self.photons <= 0:
+            raise ValueError(f"photons must be a positive integer, got {self.photons}")
+        self.k2, self.roughness = kernel_moments(self.kernel)
+
+    def _scales(self, n_chains: int) -> list[float]:
+        if n_chains == len(CHAIN_SCALES):
+            return [s / CHAIN_SCALES[1] for s in CHAIN_SCALES]
+        return [1.0] * n_chains
+
+    def start(self, r1: list[mi.Float]) -> None:
+        n = dr.width(r1[0])
+        self._r = [mi.Float(r) for r in r1]
+        self._r1 = [mi.Float(r) for r in r1]
+        # r'_max from the reference chain's radius r_1 / scale_c: every chain at a hit point
+        # shares the Laplacian's bounds (the Laplacian is the pixel's, not the chain's).
+        scales = self._scales(len(r1))
+        self._rp = [mi.Float(r) * (self.rp_max_frac / s) for r, s in zip(r1, scales)]
+        for attr in ("_psi", "_psi2", "_density", "_lap", "_lap2"):
+            setattr(self, attr, [dr.zeros(mi.Float, n) for _ in r1])
+        dr.eval(self._rp)
+
+    def radii(self) -> list[mi.Float]:
+        return self._r
+
+    def stats_targets(self, chains: Sequence[int]) -> list[APPMStatistics]:
+        """This pass's sums for the chains of one hit point: the first (the group's lead)
+        also estimates the Laplacian, with its r', for all of them."""
+        if not hasattr(self, "_pass"):
+            self._pass = {}
+        for k, c in enumerate(chains):
+            self._pass[c] = APPMStatistics(self._rp[chains[0]], laplacian=k == 0)
+        return [self._pass[c] for c in chains]
+
+    def update(self, pass_index: int, results: Any) -> None:
+        # Per-pass literals enter as opaque values: one compiled kernel for every pass.
+        n_done = dr.opaque(mi.Float64, float(pass_index))
+        inv_i = dr.opaque(mi.Float64, 1.0 / pass_index)
+        n_next = dr.opaque(mi.Float64, pass_index + 1.0)
+        value_rate = dr.opaque(mi.Float64, (pass_index + 1.0) ** A.RATE_VALUE)
+        lap_rate = dr.opaque(mi.Float64, (pass_index + 1.0) ** A.RATE_LAPLACIAN)
+        inv_j = 1.0 / self.photons
+        scales = self._scales(len(self._r))
+        for chains, _ in results:
+            lap = self._pass[chains[0]].sums()[3] * inv_j  # the group's shared Laplacian
+            for c in chains:
+                self._update_chain(c, chains[0], lap, inv_i, n_done, n_next, value_rate, lap_rate, scales[c])
+        self._pass = {}
+
+    def _update_chain(self, c: int, lead: int, lap: Any, inv_i: Any, n_done: Any, n_next: Any,
+                      value_rate: Any, lap_rate: Any, scale: float) -> None:
+        """Fold pass sums into chain c's running means, then its r' (the lead's, Eq. 6.7)
+        and r (Eq. 6.4), both bounded (Sec. 6.4)."""
+        inv_j = 1.0 / self.photons
+        d, a, q, _ = (x * inv_j for x in self._pass[c].sums())
+        # Running means over the passes (the recursive estimators of Eq. 4.1 / 6.5).
+        means = {}
+        for attr, x in (("_psi", a), ("_psi2", q), ("_density", d), ("_lap", lap), ("_lap2", lap * lap)):
+            m = _float64(getattr(self, attr)[c])
+            means[attr] = m + (x - m) * inv_i
+        r1 = _float64(self._r1[c])
+        if c == lead:
+            unit = r1 * (1.0 / scale)  # the reference chain's initial radius
+            rp_max = unit * self.rp_max_frac
+            rp = A.silverman_radius(means["_lap"], means["_lap2"], unit, n_done, n_next, DRJIT_OPS)
+            self._rp[c] = mi.Float(A.bounded(rp, rp_max * self.r_min_frac * lap_rate, rp_max * lap_rate, DRJIT_OPS))
+        else:  # computed from the same moments: the lead's, exactly
+            self._rp[c] = self._rp[lead]
+        moment = A.psi_moment(means["_psi"], means["_psi2"], means["_density"], self.variance, DRJIT_OPS)
+        lap2 = A.laplacian_square(means["_lap"], means["_lap2"], n_done, self.laplacian,
+                                  self.laplacian_z, DRJIT_OPS)
+        r = A.plugin_radius(moment, lap2, n_next, self.photons, self.k2, self.roughness, DRJIT_OPS)
+        r = A.bounded(r * scale, r1 * self.r_min_frac * value_rate, r1 * self.r_max_frac * value_rate, DRJIT_OPS)
+        for attr, m in means.items():
+            getattr(self, attr)[c] = mi.Float(m)
+        self._r[c] = mi.Float(r)
+        dr.eval(self._r[c], self._rp[c], *(getattr(self, attr)[c] for attr in means))
+
+    def header(self) -> dict[str, Any]:
+        return {"ppmrecon.method": self.name, "ppmrecon.appm.r_min_frac": self.r_min_frac,
+                "ppmrecon.appm.r_max_frac": self.r_max_frac, "ppmrecon.appm.rp_max_frac": self.rp_max_frac,
+                "ppmrecon.appm.variance": self.variance, "ppmrecon.appm.laplacian": self.laplacian,
+                "ppmrecon.appm.laplacian_z": self.laplacian_z,
+                "ppmrecon.appm.laplacian_kernel": "perlin",
+                "ppmrecon.appm.silverman": A.SILVERMAN_PERLIN}
+
+
 def _check_open_unit(name: str, value: float) -> None:
     if not 0.0 < value < 1.0:
         raise ValueError(f"{name} must lie in (0, 1), got {value}")
@@ -431,7 +634,7 @@ def _check_open_unit(name: str, value: float) -> None:
 
 def make_controller(method: str, defaults: dict[str, Any] | None = None, **params: Any) -> Controller:
     """The controller for ``method``. ``params`` are its options; ``defaults`` are
-    render-wide settings (alpha, knn, photons) passed on to the controllers that take
+    render-wide settings (alpha, knn, photons, kernel) passed on to the controllers that take
     them."""
     try:
         cls = CONTROLLERS[method]
@@ -447,4 +650,5 @@ def make_controller(method: str, defaults: dict[str, Any] | None = None, **param
     return cls(**params)
 
 
-CONTROLLERS: dict[str, type] = {"sppm": SPPMController, "cppm": CPPMController, "fppm": FPPMController}
+CONTROLLERS: dict[str, type] = {"sppm": SPPMController, "cppm": CPPMController, "fppm": FPPMController,
+                                 "appm": APPMController}

@@ -27,6 +27,14 @@ kernel weight: a sample of the integral of Psi* over the cell, paper 000 Eq. 5-6
 photon's sector is computed once and shared by the chains; its annulus depends on each
 chain's radius. Without ``stats`` none of this enters the kernel (SPPM's fast path).
 
+APPM's targets (:class:`.controllers.APPMStatistics`) take each photon instead with its
+tangent-plane offset, kernel weight and luminance contribution c = luminance(beta f Phi)
+(in pixel units, beta = the eye path's throughput): the sums of K, K c and K c^2 inside
+the chain's radius and of c w_lap within 2 r' (paper 001 Eq. 5.4, 6.5; see
+:mod:`ppmrecon.render.appm`; only the first chain of a hit point estimates the
+Laplacian, the others share it). Its ``reach`` 2 r' widens the search where it exceeds
+the chain's radius.
+
 The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
 the first pass and reused afterwards (every per-pass number enters as an opaque array).
 """
@@ -78,6 +86,10 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     r_search = radii[0]
     for r in radii[1:]:
         r_search = dr.maximum(r_search, r)
+    appm = [st is not None and getattr(st, "kind", None) == "appm" for st in (stats or [])]
+    for st, is_appm in zip(stats or [], appm):
+        if is_appm and st.reach is not None:  # the Laplacian's stencil reaches 2 r' (paper 001 Eq. 6.5)
+            r_search = dr.maximum(r_search, st.reach)
     r_search = dr.select(gp.found, r_search, 0.0)
     r2 = [r * r for r in radii]
     r_search2 = r_search * r_search
@@ -132,13 +144,19 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
             # Tangent-plane offset (paper 000 Eq. 2); the sector is the same for every
             # chain, only the annulus depends on r_s.
             offset = xp - si.p
-            sector = sector_index(dr.dot(offset, frame_s), dr.dot(offset, frame_t), DRJIT_OPS)
+            off_s, off_t = dr.dot(offset, frame_s), dr.dot(offset, frame_t)
+            if not all(appm):
+                sector = sector_index(off_s, off_t, DRJIT_OPS)
+            if any(appm):
+                lum = mi.luminance(gp.beta * contrib)
         for s in range(n_slots):
             inside = ok & (d2 < r2[s])
             weight = kernel_weight(kernel, d2, r2[s], sqrt=dr.sqrt)
             flux[s] = dr.select(inside, flux[s] + weight * contrib, flux[s])
             count[s] = dr.select(inside, count[s] + 1, count[s])
-            if stats is not None:
+            if stats is not None and appm[s]:
+                stats[s].add_photon(lane, off_s, off_t, weight, lum, inside, ok)
+            elif stats is not None:
                 cell_s = mi.UInt32(cell_index(sector, d2, r2[s], DRJIT_OPS))
                 stats[s].add(lane, cell_s, contrib, inside)
         return k + 1, end, cell, tuple(flux), tuple(count), dropped

@@ -199,7 +199,8 @@ class Renderer:
         # FPPM's alpha, CPPM's initial photon-count threshold).
         self.controller: Controller = make_controller(
             settings.method,
-            defaults={"alpha": settings.alpha, "knn": settings.knn, "photons": settings.photons},
+            defaults={"alpha": settings.alpha, "knn": settings.knn, "photons": settings.photons,
+                      "kernel": settings.kernel},
             **settings.method_params)
         # The baseline starts at its own k-NN distance (single_knn), the five chains at
         # CHAIN_SCALES x the k-NN distance (knn).
