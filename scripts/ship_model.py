@@ -75,7 +75,7 @@ def main() -> None:
         f"| architecture | preset `{meta['preset']}`: {ckpt.model.preset.layers} conv layers, "
         f"{ckpt.model.preset.filters} filters {ckpt.model.preset.kernel}x{ckpt.model.preset.kernel}, "
         f"window K = {ckpt.model.preset.window}, {parameter_count(ckpt.model)} parameters |",
-        f"| inputs | {ckpt.model.features.n_channels()} channels (5 estimates, 5 variances, albedo, normal, depth; "
+        f"| inputs | {ckpt.model.features.n_channels} channels (5 estimates, 5 variances, albedo, normal, depth; "
         f"optional features {ckpt.model.features.to_dict()}), SPPM buffer files |",
         f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; applied in training as at inference) |",
         f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
@@ -99,8 +99,16 @@ def main() -> None:
         "![validation curve](default_validation.png)", "",
         "| epoch | train loss (Eq. 8) | validation relMSE | best single input |", "|---|---|---|---|",
     ]
+    sets = []
     for h in history:
         lines.append(f"| {h['epoch']} | {h['loss']:.4f} | {h['val']['output']:.4f} | {h['val']['best_single']:.4f} |")
+        key = tuple(h.get("val_images") or ())
+        if not sets or sets[-1][1] != key:
+            sets.append((h["epoch"], key))
+    if len(sets) > 1:
+        lines += ["", "The validation set changed during training (the run was resumed on a data set that had "
+                  "grown): from epoch " + ", from epoch ".join(f"{e}: {len(k) or 'unrecorded'} images" for e, k in sets)
+                  + "; `best.pt` compares only epochs validated on the same images."]
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
               "benchmarks/results/quality.md, curves.md, guard.md, anchor.md."]

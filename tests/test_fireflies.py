@@ -150,14 +150,15 @@ def test_cli_guard_on_with_the_shipped_model(tmp_path, capsys):
     src = tmp_path / "fireflies.exr"
     B.write_buffers(src, with_fireflies(buf, 1e4, "both"))
     outs = {}
-    for choice in ("on", "model"):
+    for choice in ("on", "model", "off"):
         dst = tmp_path / f"out_{choice}.exr"
         assert main([str(src), "-o", str(dst), "--guard", choice, "--quiet", "--threads", "1"]) == 0
         outs[choice], header = B.read_rgb(dst)
-        assert header["ppmrecon.guard"] == ("on" if choice == "on" else "off")   # shipped: trained without
+        assert header["ppmrecon.guard"] == ("off" if choice == "off" else "on")   # shipped: trained with it
+    np.testing.assert_array_equal(outs["on"], outs["model"])
     for r, c in FIREFLIES:
         assert np.all(np.abs(outs["on"][r, c] - clean[r, c]) <= TOL * clean[r, c])
-        assert outs["model"][r, c].mean() > 100 * clean[r, c].mean()
+        assert outs["off"][r, c].mean() > 100 * clean[r, c].mean()
     dst = tmp_path / "out_no_anchor.exr"
     assert main([str(src), "-o", str(dst), "--anchor", "0", "--quiet", "--threads", "1"]) == 0
     no_anchor, header = B.read_rgb(dst)
@@ -381,15 +382,16 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
     torch.save(data, path)
     with pytest.raises(UsageError, match="guard setting 'band'"):
         C.load_checkpoint(path)
-    assert shipped.guard == GuardConfig() and shipped.features == FeatureConfig()
+    # the shipped model is issue 12's recipe: trained with the guard and the new features
+    assert shipped.guard == DEFAULT_ON and shipped.features == FeatureConfig(scale_free=True, outliers=True)
 
 
-def test_shipped_model_output_is_unchanged_with_the_guard_off(shipped):
-    """Old checkpoint, default settings: exactly the pipeline before issue 12."""
+def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
+    """--guard off: exactly the pipeline before issue 12 (Eq. 6, then the clamp at 0)."""
     buf, _ = synthetic(seed=1)
     buf = with_fireflies(buf, 1e3, "z")
-    out = denoise(buf, shipped, precision="float32").rgb
-    inp = from_buffer(buf)
+    out = denoise(buf, shipped, precision="float32", guard=GuardConfig()).rgb
+    inp = from_buffer(buf, shipped.features)
     with torch.no_grad():
         ref = combine(inp.y, inp.z, shipped(inp.features)).clamp(min=0)[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)

@@ -90,11 +90,15 @@ def test_snapshot_lists():
     assert cli.snapshot_path(Path("d/out.exr"), 16) == Path("d/out_p0016.exr")
 
 
-def test_ctrl_c_finishes_the_pass_then_resumes(tmp_path, monkeypatch):
+def test_ctrl_c_finishes_the_pass_then_resumes(tmp_path, monkeypatch, request):
     """SIGINT during pass 2's gather: the pass completes, the file and state hold 2
     passes (exit 130, header 'interrupted'), and resuming to 4 equals a 4-pass render."""
     from ppmrecon.render import integrator
 
+    # A run under nohup (or CI) inherits SIGINT ignored, and the renderer rightly leaves an
+    # ignored SIGINT alone: give this test the interactive default.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    request.addfinalizer(lambda: signal.signal(signal.SIGINT, previous))
     calls = {"n": 0}
     real_gather = integrator.gather
 
