@@ -315,3 +315,21 @@ def test_fit_selects_by_per_image_ratio_on_every_pass_count(tiny_data, tmp_path)
     cfg.write_text(json.dumps({"select": "best"}))
     with pytest.raises(UsageError, match="select must be one of relmse, ratio"):
         train_cli.main(["fit", str(root), "--out", str(tmp_path / "run2"), "--config", str(cfg), "--quiet"])
+
+
+def test_scenes_with_unconverged_references_can_be_left_out(tiny_data, tmp_path):
+    """max_disagreement drops a scene whose two reference halves disagree (manifest
+    agreement.relmse_trimmed) by more than the bound, with a warning naming it."""
+    root, _ = tiny_data
+    data = tmp_path / "data"
+    shutil.copytree(root, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    train = [s for s in manifest["scenes"] if s["split"] == "train"]
+    assert all(s["agreement"]["relmse_trimmed"] < 1.0 for s in train)
+    train[0]["agreement"]["relmse_trimmed"] = 2.5
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    everything = load_split(data, "train")
+    warnings = []
+    kept = load_split(data, "train", warn=warnings.append, max_disagreement=1.0)
+    assert {s.scene for s in everything} - {s.scene for s in kept} == {train[0]["id"]}
+    assert len(kept) < len(everything) and any(train[0]["id"] in w and "disagree" in w for w in warnings)

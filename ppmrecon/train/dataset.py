@@ -48,8 +48,13 @@ class Sample:
 
 def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = FeatureConfig(),
                passes: int | None = None, warn: Warn | None = None,
-               guard: GuardConfig = GuardConfig()) -> list[Sample]:
-    """All usable samples of ``split`` ("train" or "val"), optionally of one pass count."""
+               guard: GuardConfig = GuardConfig(), max_disagreement: float | None = None) -> list[Sample]:
+    """All usable samples of ``split`` ("train" or "val"), optionally of one pass count.
+
+    ``max_disagreement``: skip scenes whose two reference halves disagree by more than
+    this trimmed relMSE (manifest ``agreement.relmse_trimmed``): a reference that far from
+    converged teaches its own noise.
+    """
     root = Path(root)
     warn = warn or (lambda msg: None)
     manifest = load_manifest(root)
@@ -59,6 +64,11 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
         if scene.get("split") != split:
             continue
         folder = root / scene["id"]
+        disagreement = (scene.get("agreement") or {}).get("relmse_trimmed")
+        if max_disagreement is not None and disagreement is not None and disagreement > max_disagreement:
+            warn(f"skipping scene {scene['id']}: its two references disagree by trimmed relMSE "
+                 f"{disagreement:.3g} > {max_disagreement:g} (not converged)")
+            continue
         try:
             ref_np, _ = B.read_rgb(folder / REFERENCE)
         except PpmreconError as exc:

@@ -65,6 +65,8 @@ class TrainConfig:
     #: (geometric mean over validation images of output / best single input relMSE, so
     #: that no bright scene decides alone: issue 12 targets per-image ratios).
     select: str = "relmse"
+    #: Skip scenes whose two references disagree by more than this trimmed relMSE (None: keep all).
+    max_reference_disagreement: float | None = None
     grad_clip: float = 1.0
     #: Weight of the 8x8 block-mean term (:func:`.loss.block_log_l1`) added to Eq. 8.
     lowfreq_weight: float = 0.0
@@ -119,11 +121,13 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     except (TypeError, ValueError) as exc:
         raise UsageError(f"training config: {exc}") from None
     torch.manual_seed(cfg.seed)
-    train_samples = load_split(data, "train", features, warn=warn, guard=guard)
+    train_samples = load_split(data, "train", features, warn=warn, guard=guard,
+                               max_disagreement=cfg.max_reference_disagreement)
     config = json.loads((Path(data) / "manifest.json").read_text()).get("config", {})
     passes = sorted(config.get("input_passes", []))
     val_passes = cfg.val_passes if cfg.val_passes is not None else (passes[len(passes) // 2] if passes else None)
-    val_samples = load_split(data, "val", features, passes=val_passes or None, warn=warn, guard=guard)
+    val_samples = load_split(data, "val", features, passes=val_passes or None, warn=warn, guard=guard,
+                             max_disagreement=cfg.max_reference_disagreement)
     sampler = PatchSampler(train_samples, cfg.patch, features, augment=True, seed=cfg.seed)
 
     model = build(cfg.preset, features, guard).to(dev)
