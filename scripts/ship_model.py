@@ -67,6 +67,9 @@ def main() -> None:
     fig.savefig(DEFAULT_MODEL.with_name("default_validation.png"), dpi=110)
 
     tc = meta["train_config"]
+    bound = tc.get("max_reference_disagreement")
+    dropped = [f"{s['id']} ({s['agreement']['relmse_trimmed']:.2g})" for s in scenes
+               if bound is not None and s.get("agreement") and s["agreement"]["relmse_trimmed"] > bound]
     lines = [
         "# Model card: `default.pt`", "",
         f"The model `ppmrecon-denoise` uses when `--model` is not given. Written by "
@@ -81,6 +84,8 @@ def main() -> None:
         f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
         f"({', '.join(families)}), {n_train} train / {n_val} validation (split by scene), "
         f"{cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
+        f"| left out | {', '.join(dropped) or 'nothing'} (`max_reference_disagreement` = "
+        f"{tc.get('max_reference_disagreement')}: references not converged) |",
         f"| inputs per scene | N = {', '.join(map(str, cfg['input_passes']))} passes x seeds {cfg['seeds']}, "
         f"{cfg['photons']} photons/pass; {meta['train_images']} training images |",
         f"| references | single-bandwidth SPPM, {cfg.get('references', 1)} independent render(s) of "
