@@ -166,6 +166,8 @@ def test_cli_guard_on_with_the_shipped_model(tmp_path, capsys):
     assert B.read_rgb(tmp_path / "out_on.exr")[1]["ppmrecon.guard.anchor"] == DEFAULT_ON.anchor
     with pytest.raises(SystemExit):
         main([str(src), "-o", str(dst), "--anchor", "-1"])
+    assert main([str(src), "-o", str(dst), "--anchor", "1", "--guard", "off"]) == 2
+    assert "--anchor is part of the guard" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------------ the input guard

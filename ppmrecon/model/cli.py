@@ -183,6 +183,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     model, _meta = checkpoint.load_checkpoint(model_path, map_location=device)
     guard = guard_choice(args.guard or "on", model.guard)
     if args.anchor is not None:
+        if not guard.enabled:
+            raise UsageError("--anchor is part of the guard: it needs --guard on (the default)")
         guard = replace(guard, anchor=args.anchor)
     for src, out in zip(inputs, outputs):
         _denoise_one(args, src, out, model, model_path, device, guard)
