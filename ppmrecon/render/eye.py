@@ -41,6 +41,8 @@ class GatherPoints:
     n_oriented: mi.Normal3f        # geometric normal facing the eye
     segments: mi.UInt32            # eye-path segments to the gather point (e)
     nonfinite: int = 0             # non-finite terms dropped on the way
+    #: Where the gather point's BSDF is Lambertian (None: unknown, evaluate per photon).
+    lambertian: mi.Bool | None = None
 
     def __len__(self) -> int:
         return dr.width(self.found)
@@ -55,6 +57,30 @@ def _has_null_bsdf(scene: mi.Scene) -> bool:
         if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
             return True
     return False
+
+
+def _is_lambertian(bsdf: mi.BSDF) -> bool:
+    """Mitsuba's `diffuse`, alone or as both sides of a `twosided`: f = rho / pi."""
+    if bsdf.class_name() == "SmoothDiffuse":
+        return True
+    # A twosided's sides show only in its description (a texture below them is fine).
+    nested = [ln.strip() for ln in str(bsdf).splitlines() if ln.strip().startswith("brdf[")]
+    return (bsdf.class_name() == "TwoSidedBRDF" and len(nested) == 2
+            and all(ln.endswith("= SmoothDiffuse[") for ln in nested))
+
+
+def lambertian_table(scene: mi.Scene) -> mi.Bool:
+    """Per BSDF registry id (``dr.reinterpret_array(mi.UInt32, bsdf_ptr)``): whether
+    that BSDF is Lambertian, so the gather can evaluate it once per gather point."""
+    ids: dict[int, bool] = {}
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None:
+            ids[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = _is_lambertian(bsdf)
+    table = [False] * (max(ids, default=0) + 1)
+    for i, v in ids.items():
+        table[i] = v
+    return mi.Bool(table)
 
 
 @dr.syntax
@@ -120,9 +146,10 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
-              rr_depth: int = 5) -> GatherPoints:
+              rr_depth: int = 5, lambertian: mi.Bool | None = None) -> GatherPoints:
     """One eye path per pixel (row-major, top row first) with random stream ``seed``;
-    ``max_depth`` in segments, -1 for unbounded."""
+    ``max_depth`` in segments, -1 for unbounded; ``lambertian``: :func:`lambertian_table`
+    of the scene (computed here if not given)."""
     film_size = sensor.film().crop_size()
     width, height = int(film_size[0]), int(film_size[1])
     n = width * height
@@ -146,10 +173,12 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
     normal = dr.select(found, si.sh_frame.n, 0.0)
     n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
+    table = lambertian_table(scene) if lambertian is None else lambertian
+    lambert = found & dr.gather(mi.Bool, table, dr.reinterpret_array(mi.UInt32, bsdf), found)
     gp = GatherPoints(si=si, found=found, beta=beta, emitted=emitted, albedo=albedo,
                       normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
-                      segments=segments)
+                      segments=segments, lambertian=lambert)
     dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
-            gp.segments, bad)
+            gp.segments, gp.lambertian, bad)
     gp.nonfinite = int(dr.count(bad)[0]) if n else 0
     return gp

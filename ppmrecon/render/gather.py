@@ -35,6 +35,12 @@ the chain's radius and of c w_lap within 2 r' (paper 001 Eq. 5.4, 6.5; see
 Laplacian, the others share it). Its ``reach`` 2 r' widens the search where it exceeds
 the chain's radius.
 
+Cost (issue 17): a photon is one packet load of its record (:mod:`.grid`); at
+Lambertian gather points (Mitsuba's ``diffuse``, f cos = rho / pi max(0, cos_o)) the BSDF
+is evaluated once, towards the normal, and scaled by each photon's cos_o, which is what
+``bsdf.eval`` computes, bit for bit; gather points with direct light apart skip the
+bucket's direct photons without visiting them (the grid keeps them last).
+
 The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
 the first pass and reused afterwards (every per-pass number enters as an opaque array).
 """
@@ -49,7 +55,7 @@ import mitsuba as mi
 
 from .controllers import DRJIT_OPS
 from .eye import GatherPoints
-from .grid import PhotonGrid, cell_hash, cell_of
+from .grid import REC_D, REC_DEPTH, REC_N, REC_P, REC_POWER, RECORD, PhotonGrid, cell_hash, cell_of
 from .hypothesis import cell_index, sector_index
 from .kernels import kernel_weight
 
@@ -104,6 +110,12 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     bsdf = si.bsdf()
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     check_facing = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Transmission)
+    # Lambertian gather points: f cos = (rho / pi) max(0, cos_o) (Mitsuba's `diffuse`),
+    # so one BSDF evaluation per gather point, towards the normal on the eye's side,
+    # serves every photon; the others evaluate per photon (a virtual call in the loop).
+    lambert = gp.found & (mi.Bool(False) if gp.lambertian is None else gp.lambertian)
+    side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0.0, -1.0, 1.0)
+    f_normal = bsdf.eval(ctx, si, mi.Vector3f(0.0, 0.0, side), lambert)
     n_gp = gp.n_oriented
     mask = grid.table_mask
     lane = dr.arange(mi.UInt32, dr.width(gp.found))
@@ -113,28 +125,34 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         last_bounce = dr.opaque(mi.Int32, max_depth - 1) - mi.Int32(gp.segments)
     if indirect_only is not None:
         first_bounce = dr.select(indirect_only, mi.Int32(1), mi.Int32(0))
+    end_offset = mi.UInt32(2) if indirect_only is None or not grid.split_direct else \
+        dr.select(indirect_only, mi.UInt32(1), mi.UInt32(2))
     if stats is not None:
         frame_s, frame_t = mi.coordinate_system(si.sh_frame.n)
 
     def photon_body(k, end, cell, flux, count, dropped):
-        xp = dr.gather(mi.Point3f, grid.p, k)
+        rec = dr.gather(mi.ArrayXf, grid.record, k, shape=(RECORD, dr.width(k)))
+        xp = mi.Point3f(rec[REC_P], rec[REC_P + 1], rec[REC_P + 2])
         # Buckets can hold other cells (hash collisions): count a photon only from its own cell.
         same_cell = dr.all(cell_of(xp, inv_cell) == cell)
         d2 = dr.squared_norm(xp - si.p)
         ok = same_cell & (d2 < r_search2)
-        n_p = dr.gather(mi.Normal3f, grid.n, k, ok)
+        n_p = mi.Normal3f(rec[REC_N], rec[REC_N + 1], rec[REC_N + 2])
         ok &= ~check_facing | (dr.dot(n_p, n_gp) > FACING_COS)
-        w_p = -dr.gather(mi.Vector3f, grid.d, k, ok)
+        w_p = -mi.Vector3f(rec[REC_D], rec[REC_D + 1], rec[REC_D + 2])
         cos_g = dr.abs(dr.dot(w_p, si.n))
         ok &= cos_g > 1e-4
         if bounded or indirect_only is not None:
-            bounce = mi.Int32(dr.gather(mi.UInt32, grid.depth, k, ok))
+            bounce = mi.Int32(rec[REC_DEPTH])
             if bounded:
                 ok &= bounce <= last_bounce
             if indirect_only is not None:
                 ok &= bounce >= first_bounce
-        f_cos = bsdf.eval(ctx, si, si.to_local(w_p), ok)
-        contrib = f_cos / cos_g * dr.gather(mi.Color3f, grid.power, k, ok)
+        wo = si.to_local(w_p)
+        cos_o = wo.z * side
+        f_cos = dr.select(lambert, dr.select(cos_o > 0.0, f_normal * cos_o, 0.0),
+                          bsdf.eval(ctx, si, wo, ok & ~lambert))
+        contrib = f_cos / cos_g * mi.Color3f(rec[REC_POWER], rec[REC_POWER + 1], rec[REC_POWER + 2])
         finite = dr.all(dr.isfinite(contrib))
         dropped = dr.select(ok & ~finite, dropped + 1, dropped)
         ok &= finite
@@ -163,9 +181,10 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
 
     def cell_body(c, flux, count, dropped):
         cell = lo + mi.Vector3i(mi.Int32(c % ex), mi.Int32((c // ex) % ey), mi.Int32(c // (ex * ey)))
-        bucket = cell_hash(cell, mask)
+        bucket = cell_hash(cell, mask) * 2
         k = dr.gather(mi.UInt32, grid.start, bucket)
-        end = dr.gather(mi.UInt32, grid.end, bucket)
+        # Gather points with direct light apart stop before the bucket's direct photons.
+        end = dr.gather(mi.UInt32, grid.start, bucket + end_offset)
         _, _, _, flux, count, dropped = dr.while_loop(
             state=(k, end, cell, flux, count, dropped),
             cond=lambda k, end, cell, flux, count, dropped: k < end,

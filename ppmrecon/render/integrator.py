@@ -290,7 +290,7 @@ class Renderer:
             self.controller.start(self._initial_radii(points, photon_map.p))
         radii = self.controller.radii()
         cell = self._cell_size(radii)
-        grid = build_grid(photon_map, cell)
+        grid = build_grid(photon_map, cell, split_direct=s.direct != "none")
         t3 = clock()
         results = []
         for j, p in enumerate(points):
