@@ -104,8 +104,7 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     lo = cell_of(si.p - r_search, inv_cell)
     hi = cell_of(si.p + r_search, inv_cell)
     extent = dr.select(gp.found, hi - lo + 1, 0)
-    ex, ey = mi.UInt32(extent.x), mi.UInt32(extent.y)
-    n_cells = ex * ey * mi.UInt32(extent.z)
+    n_cells = mi.UInt32(extent.x) * mi.UInt32(extent.y) * mi.UInt32(extent.z)
 
     bsdf = si.bsdf()
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
@@ -179,8 +178,7 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
                 stats[s].add(lane, cell_s, contrib, inside)
         return k + 1, end, cell, tuple(flux), tuple(count), dropped
 
-    def cell_body(c, flux, count, dropped):
-        cell = lo + mi.Vector3i(mi.Int32(c % ex), mi.Int32((c // ex) % ey), mi.Int32(c // (ex * ey)))
+    def cell_body(c, cell, flux, count, dropped):
         bucket = cell_hash(cell, mask) * 2
         k = dr.gather(mi.UInt32, grid.start, bucket)
         # Gather points with direct light apart stop before the bucket's direct photons.
@@ -191,15 +189,23 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
             body=photon_body,
             labels=("k", "end", "cell", "flux", "count", "dropped"),
             label="ppmrecon_gather_photons")
-        return c + 1, flux, count, dropped
+        # Next cell, x fastest, then y, then z: stepped, not c % ex, c // ex ... (integer
+        # division has no vector instruction: it cost more than the photons on the CPU).
+        x = cell.x + 1
+        wrap_x = x > hi.x
+        y = dr.select(wrap_x, cell.y + 1, cell.y)
+        wrap_y = y > hi.y
+        cell = mi.Vector3i(dr.select(wrap_x, lo.x, x), dr.select(wrap_y, lo.y, y),
+                           dr.select(wrap_y, cell.z + 1, cell.z))
+        return c + 1, cell, flux, count, dropped
 
     flux0 = tuple(dr.zeros(mi.Color3f, dr.width(gp.found)) for _ in range(n_slots))
     count0 = tuple(dr.zeros(mi.UInt32, dr.width(gp.found)) for _ in range(n_slots))
-    _, flux, count, dropped = dr.while_loop(
-        state=(mi.UInt32(0), flux0, count0, dr.zeros(mi.UInt32, dr.width(gp.found))),
-        cond=lambda c, flux, count, dropped: c < n_cells,
+    _, _, flux, count, dropped = dr.while_loop(
+        state=(mi.UInt32(0), mi.Vector3i(lo), flux0, count0, dr.zeros(mi.UInt32, dr.width(gp.found))),
+        cond=lambda c, cell, flux, count, dropped: c < n_cells,
         body=cell_body,
-        labels=("c", "flux", "count", "dropped"),
+        labels=("c", "cell", "flux", "count", "dropped"),
         label="ppmrecon_gather_cells")
     flux, count = list(flux), list(count)
     dr.eval(flux, count, dropped)

@@ -2,7 +2,8 @@
 
 Photons are bucketed by the hash of their integer cell ``floor(x / cell_size)`` into a
 table of T = 2^k >= 2 J slots and sorted by bucket (a stable sort, so the order, and
-hence every floating-point sum of the gather, depends on the seed only). With
+hence every floating-point sum of the gather, depends on the seed only), all on the
+device. With
 ``split_direct`` each bucket's photons are further split, stably, into those that
 bounced before arriving (bounce index d >= 1) and the direct ones (d = 0): gather points
 whose direct light is estimated apart (:mod:`.direct`) skip the direct photons without
@@ -83,14 +84,15 @@ def build_grid(pm: PhotonMap, cell_size: float, split_direct: bool = False) -> P
     key = cell_hash(cell_of(pm.p, inv_cell), mask) * 2
     if split_direct:
         key += dr.select(pm.depth == 0, 1, 0)
-    key_np = np.asarray(key, dtype=np.int64) if n else np.zeros(0, np.int64)
-    order_np = np.argsort(key_np, kind="stable").astype(np.uint32)
-    counts = np.bincount(key_np, minlength=2 * table)
-    start_np = np.concatenate([[0], np.cumsum(counts)]).astype(np.uint32)
+    # On the device, no host round trip: a stable radix sort (dr.argsort) and a counting
+    # pass whose exclusive prefix sum gives every key's first slot (start[2T] = n).
+    counts = dr.zeros(mi.UInt32, 2 * table + 1)
     record = dr.zeros(mi.Float, n * RECORD)
     if n:
-        dr.scatter(record, photon_record(pm, mi.UInt32(order_np)), dr.arange(mi.UInt32, n))
-    grid = PhotonGrid(record=record, start=mi.UInt32(start_np), cell_size=float(cell_size),
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key)
+        dr.scatter(record, photon_record(pm, dr.argsort(key)), dr.arange(mi.UInt32, n))
+    start = dr.prefix_sum(counts)
+    grid = PhotonGrid(record=record, start=start, cell_size=float(cell_size),
                       table_mask=mask, split_direct=split_direct)
     dr.eval(grid.record, grid.start)
     return grid
