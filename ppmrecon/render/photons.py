@@ -88,7 +88,7 @@ def _emit(scene: mi.Scene, rng: mi.PCG32) -> tuple[_Paths, mi.Bool]:
 def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UInt32,
                    bounces: int, last_depth: mi.UInt32, rr_depth: int,
                    buf_p: mi.Point3f, buf_d: mi.Vector3f, buf_n: mi.Normal3f,
-                   buf_phi: mi.Color3f, buf_valid: mi.UInt32) -> tuple[mi.Bool, mi.Bool]:
+                   buf_phi: mi.Color3f, buf_valid: mi.Bool) -> tuple[mi.Bool, mi.Bool]:
     """Trace up to ``bounces`` bounces of every alive path, storing the photon of bounce
     d = depth0 + step in slot ``step * lanes + lane``. Stops a path after bounce index
     ``last_depth`` (the last one that may be stored). Returns (alive, went non-finite)."""
@@ -115,7 +115,7 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
         dr.scatter(buf_d, ray.d, slot, store)
         dr.scatter(buf_n, n_oriented, slot, store)
         dr.scatter(buf_phi, beta, slot, store)
-        dr.scatter(buf_valid, mi.UInt32(1), slot, store)
+        dr.scatter(buf_valid, True, slot, store)
 
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
                                       mi.Point2f(rng.next_float32(), rng.next_float32()), alive)
@@ -139,7 +139,7 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
 def _concat(arrays: list) -> object:
     """Concatenate arrays of one type by scatters at opaque offsets: one kernel whatever
     the number of segments or their sizes (``dr.concat`` bakes both into its kernel)."""
-    out = dr.zeros(type(arrays[0]), sum(dr.width(a) for a in arrays))
+    out = dr.empty(type(arrays[0]), sum(dr.width(a) for a in arrays))  # every slot is written
     offset = 0
     for a in arrays:
         n = dr.width(a)
@@ -165,13 +165,14 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
         lanes = dr.width(alive)
         bounces = SEGMENT_BOUNCES if max_bounces is None else min(SEGMENT_BOUNCES, max_bounces - depth0)
         size = lanes * bounces
-        buf_p, buf_d, buf_n = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size), dr.zeros(mi.Normal3f, size)
-        buf_phi, buf_valid = dr.zeros(mi.Color3f, size), dr.zeros(mi.UInt32, size)
+        # Only the valid flags need clearing: compress reads the other buffers nowhere else.
+        buf_p, buf_d, buf_n = dr.empty(mi.Point3f, size), dr.empty(mi.Vector3f, size), dr.empty(mi.Normal3f, size)
+        buf_phi, buf_valid = dr.empty(mi.Color3f, size), dr.zeros(mi.Bool, size)
         alive, bad = _trace_segment(scene, paths, alive, dr.opaque(mi.UInt32, depth0), bounces, last_depth,
                                     rr_depth, buf_p, buf_d, buf_n, buf_phi, buf_valid)
         dr.eval(buf_p, buf_d, buf_n, buf_phi, buf_valid, alive, bad, paths.ray, paths.beta, paths.rng)
         nonfinite += int(dr.count(bad)[0]) if lanes else 0
-        index = dr.compress(buf_valid > 0)
+        index = dr.compress(buf_valid)
         if dr.width(index):
             chunks.append((dr.gather(mi.Point3f, buf_p, index), dr.gather(mi.Vector3f, buf_d, index),
                            dr.gather(mi.Normal3f, buf_n, index), dr.gather(mi.Color3f, buf_phi, index),
