@@ -64,6 +64,8 @@ if TYPE_CHECKING:
 
 #: A photon counts only if its oriented normal and the gather point's agree this much.
 FACING_COS = 1e-3
+#: Slack, in cell edges, of the test that skips the cells the search sphere misses.
+CELL_MARGIN = 1e-3
 
 
 @dataclass
@@ -101,6 +103,7 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     r_search2 = r_search * r_search
 
     inv_cell = dr.opaque(mi.Float, 1.0 / grid.cell_size)
+    cell_size = dr.opaque(mi.Float, grid.cell_size)
     lo = cell_of(si.p - r_search, inv_cell)
     hi = cell_of(si.p + r_search, inv_cell)
     extent = dr.select(gp.found, hi - lo + 1, 0)
@@ -129,13 +132,14 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     if stats is not None:
         frame_s, frame_t = mi.coordinate_system(si.sh_frame.n)
 
-    def photon_body(k, end, cell, flux, count, dropped):
-        rec = dr.gather(mi.ArrayXf, grid.record, k, shape=(RECORD, dr.width(k)))
+    def visit(k, cell, flux, count, dropped, active):
+        """Photon k (where ``active``) into every chain's sums."""
+        rec = dr.gather(mi.ArrayXf, grid.record, k, active, shape=(RECORD, dr.width(k)))
         xp = mi.Point3f(rec[REC_P], rec[REC_P + 1], rec[REC_P + 2])
         # Buckets can hold other cells (hash collisions): count a photon only from its own cell.
         same_cell = dr.all(cell_of(xp, inv_cell) == cell)
         d2 = dr.squared_norm(xp - si.p)
-        ok = same_cell & (d2 < r_search2)
+        ok = active & same_cell & (d2 < r_search2)
         n_p = mi.Normal3f(rec[REC_N], rec[REC_N + 1], rec[REC_N + 2])
         ok &= ~check_facing | (dr.dot(n_p, n_gp) > FACING_COS)
         w_p = -mi.Vector3f(rec[REC_D], rec[REC_D + 1], rec[REC_D + 2])
@@ -176,37 +180,55 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
             elif stats is not None:
                 cell_s = mi.UInt32(cell_index(sector, d2, r2[s], DRJIT_OPS))
                 stats[s].add(lane, cell_s, contrib, inside)
-        return k + 1, end, cell, tuple(flux), tuple(count), dropped
+        return tuple(flux), tuple(count), dropped
 
-    def cell_body(c, cell, flux, count, dropped):
+    def cell_range(cell, active):
+        """Photons [k, end) of ``cell``'s bucket that a gather point may visit; empty where
+        the search sphere misses the cell (a corner cell of the bounding box, or a layer
+        off a wall: none of its photons can lie within r_search; the margin keeps any cell
+        a photon's rounded floor() may have put it in)."""
+        corner = mi.Vector3f(cell) * cell_size
+        gap = dr.maximum(dr.maximum(corner - si.p, si.p - (corner + cell_size)), 0.0)
+        gap = dr.maximum(gap - cell_size * CELL_MARGIN, 0.0)
+        active = active & (dr.squared_norm(gap) < r_search2)
         bucket = cell_hash(cell, mask) * 2
-        k = dr.gather(mi.UInt32, grid.start, bucket)
+        k = dr.gather(mi.UInt32, grid.start, bucket, active)
         # Gather points with direct light apart stop before the bucket's direct photons.
-        end = dr.gather(mi.UInt32, grid.start, bucket + end_offset)
-        _, _, _, flux, count, dropped = dr.while_loop(
-            state=(k, end, cell, flux, count, dropped),
-            cond=lambda k, end, cell, flux, count, dropped: k < end,
-            body=photon_body,
-            labels=("k", "end", "cell", "flux", "count", "dropped"),
-            label="ppmrecon_gather_photons")
+        end = dr.gather(mi.UInt32, grid.start, bucket + end_offset, active)
+        return k, end
+
+    def body(c, cell, k, end, flux, count, dropped):
+        # One loop over (cell, photon) steps rather than a photon loop nested in a cell
+        # loop: a SIMD packet then runs as long as its busiest lane's total, not the sum
+        # over cells of each cell's busiest lane. A lane's photon order is unchanged.
+        has = k < end
+        flux, count, dropped = visit(k, cell, flux, count, dropped, has)
+        k = dr.select(has, k + 1, k)
         # Next cell, x fastest, then y, then z: stepped, not c % ex, c // ex ... (integer
         # division has no vector instruction: it cost more than the photons on the CPU).
+        step = ~has
         x = cell.x + 1
         wrap_x = x > hi.x
         y = dr.select(wrap_x, cell.y + 1, cell.y)
         wrap_y = y > hi.y
-        cell = mi.Vector3i(dr.select(wrap_x, lo.x, x), dr.select(wrap_y, lo.y, y),
-                           dr.select(wrap_y, cell.z + 1, cell.z))
-        return c + 1, cell, flux, count, dropped
+        cell = dr.select(step, mi.Vector3i(dr.select(wrap_x, lo.x, x), dr.select(wrap_y, lo.y, y),
+                                           dr.select(wrap_y, cell.z + 1, cell.z)), cell)
+        c = dr.select(step, c + 1, c)
+        step &= c < n_cells
+        k_next, end_next = cell_range(cell, step)
+        k, end = dr.select(step, k_next, k), dr.select(step, end_next, end)
+        return c, cell, k, end, flux, count, dropped
 
-    flux0 = tuple(dr.zeros(mi.Color3f, dr.width(gp.found)) for _ in range(n_slots))
-    count0 = tuple(dr.zeros(mi.UInt32, dr.width(gp.found)) for _ in range(n_slots))
-    _, _, flux, count, dropped = dr.while_loop(
-        state=(mi.UInt32(0), mi.Vector3i(lo), flux0, count0, dr.zeros(mi.UInt32, dr.width(gp.found))),
-        cond=lambda c, cell, flux, count, dropped: c < n_cells,
-        body=cell_body,
-        labels=("c", "cell", "flux", "count", "dropped"),
-        label="ppmrecon_gather_cells")
+    width = dr.width(gp.found)
+    flux0 = tuple(dr.zeros(mi.Color3f, width) for _ in range(n_slots))
+    count0 = tuple(dr.zeros(mi.UInt32, width) for _ in range(n_slots))
+    k0, end0 = cell_range(lo, n_cells > 0)
+    _, _, _, _, flux, count, dropped = dr.while_loop(
+        state=(mi.UInt32(0), mi.Vector3i(lo), k0, end0, flux0, count0, dr.zeros(mi.UInt32, width)),
+        cond=lambda c, cell, k, end, flux, count, dropped: c < n_cells,
+        body=body,
+        labels=("c", "cell", "k", "end", "flux", "count", "dropped"),
+        label="ppmrecon_gather")
     flux, count = list(flux), list(count)
     dr.eval(flux, count, dropped)
     if stats is not None:  # the scatters ran in the loop kernel; make them visible
