@@ -198,15 +198,17 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         return k, end
 
     def body(c, cell, k, end, flux, count, dropped):
-        # One loop over (cell, photon) steps rather than a photon loop nested in a cell
-        # loop: a SIMD packet then runs as long as its busiest lane's total, not the sum
-        # over cells of each cell's busiest lane. A lane's photon order is unchanged.
+        # One loop over steps of one photon and/or one cell rather than a photon loop
+        # nested in a cell loop: a SIMD packet then runs as long as its busiest lane's
+        # total, not the sum over cells of each cell's busiest lane. A lane's photon
+        # order is unchanged.
         has = k < end
         flux, count, dropped = visit(k, cell, flux, count, dropped, has)
         k = dr.select(has, k + 1, k)
-        # Next cell, x fastest, then y, then z: stepped, not c % ex, c // ex ... (integer
-        # division has no vector instruction: it cost more than the photons on the CPU).
-        step = ~has
+        # Next cell as soon as this one is done, in the same step as its last photon.
+        # Stepped x fastest, then y, then z, not by c % ex, c // ex ... (integer division
+        # has no vector instruction: it cost more than the photons on the CPU).
+        step = k >= end
         x = cell.x + 1
         wrap_x = x > hi.x
         y = dr.select(wrap_x, cell.y + 1, cell.y)
