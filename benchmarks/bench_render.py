@@ -51,35 +51,48 @@ def pass_timings(scene_name: str, res: tuple[int, int], photons: int, passes: in
     depth = loaded.depths()[0]
     out: dict = {"scene": scene_name, "resolution": f"{res[0]}x{res[1]}", "photons": photons, "max_depth": depth,
                  "passes": passes, "load_before": os.getloadavg()[0]}
-    for layout in ("single", "multi"):
-        r = Renderer(loaded.scene, RenderSettings(passes=passes + 1, photons=photons, layout=layout,
-                                                  max_depth=depth))
+    renderers = {layout: Renderer(loaded.scene, RenderSettings(passes=passes + 1, photons=photons, layout=layout,
+                                                               max_depth=depth))
+                 for layout in ("single", "multi")}
+    integrator = mi.load_dict({"type": "path", "max_depth": depth})  # Mitsuba's own, same film and depth
+
+    def path_2spp(seed: int) -> float:
+        t = time.perf_counter()
+        dr.eval(mi.render(loaded.scene, integrator=integrator, spp=2, seed=seed))
+        dr.sync_thread()
+        return time.perf_counter() - t
+
+    first = {}
+    for layout, r in renderers.items():
         r.run_pass()  # compiles kernels, builds the k-NN radii: not a steady-state pass
-        first = dict(r.stage_seconds)
-        t0 = r.seconds
-        for _ in range(passes):
+        first[layout] = r.seconds
+    path_2spp(0)  # compiles
+    # Interleaved, one pass of each and one path-traced frame per round, so that a change
+    # of the machine's load hits all three alike; medians over the rounds.
+    seconds: dict = {layout: [] for layout in renderers}
+    stages: dict = {layout: {k: [] for k in renderers[layout].stage_seconds} for layout in renderers}
+    path_times = []
+    for i in range(passes):
+        for layout, r in renderers.items():
+            t0, s0 = r.seconds, dict(r.stage_seconds)
             r.run_pass()
-        per_stage = {k: (v - first[k]) / passes for k, v in r.stage_seconds.items()}
+            seconds[layout].append(r.seconds - t0)
+            for k, v in r.stage_seconds.items():
+                stages[layout][k].append(v - s0[k])
+        path_times.append(path_2spp(i + 1))
+    for layout, r in renderers.items():
+        per_stage = {k: float(np.median(v)) for k, v in stages[layout].items()}
         points = r.n_pixels * len(r._eye_streams())  # gather points per pass
-        out[layout] = {"pass_seconds": (r.seconds - t0) / passes, "stages": per_stage,
-                       "first_pass_seconds": t0,
+        out[layout] = {"pass_seconds": float(np.median(seconds[layout])), "stages": per_stage,
+                       "first_pass_seconds": first[layout],
                        "photons_per_s": photons / per_stage["photons"],
                        "gather_points_per_s": points / per_stage["gather"]}
-    # Mitsuba's own path tracer, same film and depth, 2 spp (after a compiling call).
-    integrator = mi.load_dict({"type": "path", "max_depth": depth})
-    img = mi.render(loaded.scene, integrator=integrator, spp=2)
-    dr.eval(img)
-    dr.sync_thread()
-    times = []
-    for seed in range(max(3, passes // 2)):
-        t = time.perf_counter()
-        img = mi.render(loaded.scene, integrator=integrator, spp=2, seed=seed + 1)
-        dr.eval(img)
-        dr.sync_thread()
-        times.append(time.perf_counter() - t)
-    out["path_2spp_seconds"] = float(np.median(times))
+    out["path_2spp_seconds"] = float(np.median(path_times))
     out["ratio_multi_vs_path2spp"] = out["multi"]["pass_seconds"] / out["path_2spp_seconds"]
     out["ratio_multi_vs_single"] = out["multi"]["pass_seconds"] / out["single"]["pass_seconds"]
+    # The same ratios round by round (their spread shows how much the load moved them).
+    out["ratio_multi_vs_path2spp_per_round"] = [m / p for m, p in zip(seconds["multi"], path_times)]
+    out["ratio_multi_vs_single_per_round"] = [m / s for m, s in zip(seconds["multi"], seconds["single"])]
     out["load_after"] = os.getloadavg()[0]
     return out
 
@@ -178,7 +191,8 @@ def report_lines(report: dict, before: dict | None) -> list[str]:
     t, variant, q = report["timings"], report["variant"], report["quick"]
     lines = [f"# Renderer benchmark ({variant}, {report['cpus']} CPUs{', quick' if q else ''})", "",
              f"Scene `{t['scene']}` {t['resolution']}, {t['photons']} photons/pass, max depth {t['max_depth']}, "
-             f"mean of {t['passes']} steady-state passes after the compiling first pass; load average "
+             f"median of {t['passes']} rounds (one steady-state pass of each layout and one path-traced frame "
+             "per round, interleaved, after the compiling first pass); stage columns: medians per stage; load average "
              f"{t['load_before']:.1f} before, {t['load_after']:.1f} after (other jobs share the machine: "
              "compare ratios, not seconds).", "",
              "| | seconds/pass | photons | eye | grid | gather | update |", "|---|---|---|---|---|---|---|"]
@@ -192,8 +206,12 @@ def report_lines(report: dict, before: dict | None) -> list[str]:
         lines += [f"Before: the renderer before issue 17 ({DEFAULT_BEFORE.name if before is not None else ''}, "
                   f"measured in its own run: five chains / one chain {bt['ratio_multi_vs_single']:.2f}x, "
                   f"five-chain pass / path 2 spp {bt['ratio_multi_vs_path2spp']:.2f}x).", ""]
-    lines += [f"* five chains / one chain: **{t['ratio_multi_vs_single']:.2f}x** (target <= {TARGET_VS_SINGLE:.2f})",
-              f"* five-chain pass / path 2 spp: **{t['ratio_multi_vs_path2spp']:.2f}x** (target <= {TARGET_VS_PATH:.2f})"]
+    spread = {k: (min(t.get(k + "_per_round", [0])), max(t.get(k + "_per_round", [0])))
+              for k in ("ratio_multi_vs_single", "ratio_multi_vs_path2spp")}
+    lines += [f"* five chains / one chain: **{t['ratio_multi_vs_single']:.2f}x** (target <= {TARGET_VS_SINGLE:.2f}; "
+              "rounds %.2f-%.2f)" % spread["ratio_multi_vs_single"],
+              f"* five-chain pass / path 2 spp: **{t['ratio_multi_vs_path2spp']:.2f}x** (target <= {TARGET_VS_PATH:.2f}; "
+              "rounds %.2f-%.2f)" % spread["ratio_multi_vs_path2spp"]]
     for layout in ("single", "multi"):
         x = t[layout]
         lines.append(f"* {layout}: {x['photons_per_s'] / 1e6:.2f}M photons/s (photon stage), "

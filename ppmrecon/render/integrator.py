@@ -290,7 +290,12 @@ class Renderer:
             self.controller.start(self._initial_radii(points, photon_map.p))
         radii = self.controller.radii()
         cell = self._cell_size(radii)
-        grid = build_grid(photon_map, cell, split_direct=s.direct != "none")
+        # Direct photons last in each bucket, skipped unvisited where direct light is apart.
+        # Only with direct light everywhere: then every gather point that visits them
+        # counts none of them (no room for a segment more), so each sum keeps its order
+        # and the image stays bit-identical; with "glossy" the others would sum in a
+        # different order (rounding-level changes).
+        grid = build_grid(photon_map, cell, split_direct=s.direct == "all")
         t3 = clock()
         results = []
         for j, p in enumerate(points):
@@ -303,6 +308,9 @@ class Renderer:
         t4 = clock()
 
         inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
+        # Every accumulator of the pass in one kernel, and one host read of the count of
+        # non-finite estimates (per chain, each was a kernel and a pipeline stall).
+        n_bad = dr.zeros(mi.UInt32, self.n_pixels)
         for j, (chains, res) in enumerate(results):
             p = points[j]
             for slot, c in enumerate(chains):
@@ -313,12 +321,14 @@ class Renderer:
                 # Non-finite terms were dropped at their source; this is the last guard
                 # (e.g. a finite sum that overflows), counted apart in the header.
                 finite = dr.all(dr.isfinite(estimate))
-                dropped["estimate"] += int(dr.count(~finite)[0]) if dr.width(finite) else 0
-                self.means[c].add(dr.select(finite, estimate, 0.0))
+                n_bad += dr.select(finite, mi.UInt32(0), mi.UInt32(1))
+                self.means[c].add(dr.select(finite, estimate, 0.0), evaluate=False)
         for p in points:
-            self.albedo.add(p.albedo)
-            self.normal.add(p.normal)
-            self.depth.add(p.depth)
+            self.albedo.add(p.albedo, evaluate=False)
+            self.normal.add(p.normal, evaluate=False)
+            self.depth.add(p.depth, evaluate=False)
+        dr.eval(n_bad, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean, self.depth.mean)
+        dropped["estimate"] += int(dr.sum(n_bad)[0]) if self.n_pixels else 0
         self.controller.update(i, results)
         t5 = clock()
 
