@@ -55,7 +55,8 @@ import mitsuba as mi
 
 from .controllers import DRJIT_OPS
 from .eye import GatherPoints
-from .grid import REC_D, REC_DEPTH, REC_N, REC_P, REC_POWER, RECORD, PhotonGrid, cell_hash, cell_of
+from .grid import PhotonGrid, cell_hash, cell_of
+from .photons import REC_D, REC_DEPTH, REC_N, REC_P, REC_POWER, RECORD
 from .hypothesis import cell_index, sector_index
 from .kernels import kernel_weight
 

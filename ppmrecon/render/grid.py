@@ -12,9 +12,8 @@ the indirect ones below ``start[2h + 1]``. Different cells can share a bucket; t
 gather compares each photon's own cell with the visited one so a photon is never
 counted twice.
 
-Each photon is one record of ``RECORD`` floats (position, arrival direction, normal,
-power, bounce index), so the gather reads a photon with one packet load per lane rather
-than thirteen scattered gathers.
+Each photon is one record of ``RECORD`` floats (:mod:`.photons`), so the gather reads a
+photon with one packet load per lane rather than thirteen scattered gathers.
 """
 
 from __future__ import annotations
@@ -25,15 +24,10 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .photons import PhotonMap
+from .photons import RECORD, PhotonMap
 
 # Large primes of the classic spatial hash (Teschner et al. 2003).
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
-
-#: Floats per photon record (13 used; a power of two for packet loads).
-RECORD = 16
-#: Offsets of the record's fields: x_p, w_p (arrival direction), n_p, Phi_p, d.
-REC_P, REC_D, REC_N, REC_POWER, REC_DEPTH = 0, 3, 6, 9, 12
 
 
 def cell_of(p: mi.Point3f, inv_cell: mi.Float) -> mi.Vector3i:
@@ -64,16 +58,6 @@ class PhotonGrid:
         return dr.width(self.record) // RECORD
 
 
-def photon_record(pm: PhotonMap, index: mi.UInt32) -> mi.ArrayXf:
-    """The records of photons ``index`` of ``pm`` (RECORD x len(index))."""
-    p, d = dr.gather(mi.Point3f, pm.p, index), dr.gather(mi.Vector3f, pm.d, index)
-    n, phi = dr.gather(mi.Normal3f, pm.n, index), dr.gather(mi.Color3f, pm.power, index)
-    depth = mi.Float(dr.gather(mi.UInt32, pm.depth, index))
-    zero = dr.zeros(mi.Float, dr.width(index))
-    return mi.ArrayXf(p.x, p.y, p.z, d.x, d.y, d.z, n.x, n.y, n.z, phi.x, phi.y, phi.z, depth,
-                      *([zero] * (RECORD - 13)))
-
-
 def build_grid(pm: PhotonMap, cell_size: float, split_direct: bool = False) -> PhotonGrid:
     """Bucket the photons of ``pm`` into cells of edge ``cell_size`` (with
     ``split_direct``, direct photons after the others in every bucket)."""
@@ -83,14 +67,15 @@ def build_grid(pm: PhotonMap, cell_size: float, split_direct: bool = False) -> P
     inv_cell = dr.opaque(mi.Float, 1.0 / cell_size)
     key = cell_hash(cell_of(pm.p, inv_cell), mask) * 2
     if split_direct:
-        key += dr.select(pm.depth == 0, 1, 0)
+        key += dr.select(pm.depth == 0, mi.UInt32(1), mi.UInt32(0))
     # On the device, no host round trip: a stable radix sort (dr.argsort) and a counting
     # pass whose exclusive prefix sum gives every key's first slot (start[2T] = n).
     counts = dr.zeros(mi.UInt32, 2 * table + 1)
-    record = dr.zeros(mi.Float, n * RECORD)
+    record = dr.empty(mi.Float, n * RECORD) if n else dr.zeros(mi.Float, 0)  # every slot is written
     if n:
         dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key)
-        dr.scatter(record, photon_record(pm, dr.argsort(key)), dr.arange(mi.UInt32, n))
+        order = dr.argsort(key)
+        dr.scatter(record, dr.gather(mi.ArrayXf, pm.record, order, shape=(RECORD, n)), dr.arange(mi.UInt32, n))
     start = dr.prefix_sum(counts)
     grid = PhotonGrid(record=record, start=start, cell_size=float(cell_size),
                       table_mask=mask, split_direct=split_direct)
