@@ -31,7 +31,8 @@ from .rng import make_rng
 class GatherPoints:
     """Gather points of one wavefront (one per lane) and their G-buffer values."""
 
-    si: mi.SurfaceInteraction3f   # valid where ``found``
+    hit: mi.PreliminaryIntersection3f  # of ``ray``: the gather point where ``found``
+    ray: mi.Ray3f                  # the eye path's last ray
     found: mi.Bool                 # the path reached a non-delta surface
     beta: mi.Color3f               # throughput camera -> gather point
     emitted: mi.Color3f            # L_e collected on the way
@@ -46,6 +47,13 @@ class GatherPoints:
 
     def __len__(self) -> int:
         return dr.width(self.found)
+
+    @property
+    def si(self) -> mi.SurfaceInteraction3f:
+        """The gather point's full surface interaction (valid where ``found``), computed
+        inside each kernel that reads it: what ``scene.ray_intersect`` returns, bit for
+        bit, without writing its ~40 values per lane to memory and reading them back."""
+        return self.hit.compute_surface_interaction(self.ray, mi.RayFlags.All, self.found)
 
 
 def _has_null_bsdf(scene: mi.Scene) -> bool:
@@ -168,17 +176,18 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     beta *= ray_weight
     emitted *= ray_weight
 
-    si = scene.ray_intersect(last_ray, found)
+    hit = scene.ray_intersect_preliminary(last_ray, False, found)
+    si = hit.compute_surface_interaction(last_ray, mi.RayFlags.All, found)
     bsdf = si.bsdf(last_ray)
     albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
     normal = dr.select(found, si.sh_frame.n, 0.0)
     n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
     table = lambertian_table(scene) if lambertian is None else lambertian
     lambert = found & dr.gather(mi.Bool, table, dr.reinterpret_array(mi.UInt32, bsdf), found)
-    gp = GatherPoints(si=si, found=found, beta=beta, emitted=emitted, albedo=albedo,
+    gp = GatherPoints(hit=hit, ray=last_ray, found=found, beta=beta, emitted=emitted, albedo=albedo,
                       normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
                       segments=segments, lambertian=lambert)
-    dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
+    dr.eval(gp.hit, gp.ray, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
             gp.segments, gp.lambertian, bad)
     gp.nonfinite = int(dr.count(bad)[0]) if n else 0
     return gp
