@@ -44,6 +44,8 @@ class GatherPoints:
     nonfinite: int = 0             # non-finite terms dropped on the way
     #: Where the gather point's BSDF is Lambertian (None: unknown, evaluate per photon).
     lambertian: mi.Bool | None = None
+    #: Every non-delta BSDF of the scene is Lambertian: the gather needs no BSDF call.
+    only_lambertian: bool = False
 
     def __len__(self) -> int:
         return dr.width(self.found)
@@ -77,18 +79,28 @@ def _is_lambertian(bsdf: mi.BSDF) -> bool:
             and all(ln.endswith("= SmoothDiffuse[") for ln in nested))
 
 
-def lambertian_table(scene: mi.Scene) -> mi.Bool:
-    """Per BSDF registry id (``dr.reinterpret_array(mi.UInt32, bsdf_ptr)``): whether
-    that BSDF is Lambertian, so the gather can evaluate it once per gather point."""
+@dataclass(frozen=True)
+class LambertianTable:
+    """Per BSDF registry id (``dr.reinterpret_array(mi.UInt32, bsdf_ptr)``): whether that
+    BSDF is Lambertian (so the gather evaluates it once per gather point); ``only``: every
+    BSDF with a diffuse or glossy component is."""
+
+    by_id: mi.Bool
+    only: bool
+
+
+def lambertian_table(scene: mi.Scene) -> LambertianTable:
+    """The :class:`LambertianTable` of ``scene``'s BSDFs."""
     ids: dict[int, bool] = {}
     for shape in scene.shapes():
         bsdf = shape.bsdf()
         if bsdf is not None:
-            ids[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = _is_lambertian(bsdf)
+            ids[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = (
+                _is_lambertian(bsdf) or not mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))
     table = [False] * (max(ids, default=0) + 1)
     for i, v in ids.items():
         table[i] = v
-    return mi.Bool(table)
+    return LambertianTable(mi.Bool(table), all(ids.values()))
 
 
 @dr.syntax
@@ -154,7 +166,7 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
-              rr_depth: int = 5, lambertian: mi.Bool | None = None) -> GatherPoints:
+              rr_depth: int = 5, lambertian: LambertianTable | None = None) -> GatherPoints:
     """One eye path per pixel (row-major, top row first) with random stream ``seed``;
     ``max_depth`` in segments, -1 for unbounded; ``lambertian``: :func:`lambertian_table`
     of the scene (computed here if not given)."""
@@ -183,10 +195,11 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     normal = dr.select(found, si.sh_frame.n, 0.0)
     n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
     table = lambertian_table(scene) if lambertian is None else lambertian
-    lambert = found & dr.gather(mi.Bool, table, dr.reinterpret_array(mi.UInt32, bsdf), found)
+    # A delta-only BSDF counts as Lambertian in the table (it is never a gather point).
+    lambert = found & dr.gather(mi.Bool, table.by_id, dr.reinterpret_array(mi.UInt32, bsdf), found)
     gp = GatherPoints(hit=hit, ray=last_ray, found=found, beta=beta, emitted=emitted, albedo=albedo,
                       normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
-                      segments=segments, lambertian=lambert)
+                      segments=segments, lambertian=lambert, only_lambertian=table.only)
     dr.eval(gp.hit, gp.ray, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
             gp.segments, gp.lambertian, bad)
     gp.nonfinite = int(dr.count(bad)[0]) if n else 0

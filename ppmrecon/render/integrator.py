@@ -36,7 +36,7 @@ from .controllers import CHAIN_SCALES, Controller, make_controller
 from .direct import check_mode as check_direct_mode
 from .direct import direct_light, uses_direct
 from .estimates import PlainMean, RunningMean
-from .eye import GatherPoints, trace_eye
+from .eye import GatherPoints, lambertian_table, trace_eye
 from .gather import gather
 from .grid import build_grid
 from .kernels import KERNELS
@@ -217,6 +217,7 @@ class Renderer:
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
+        self.lambertian = lambertian_table(scene)
         #: True while a pass has changed some accumulators but not all (see run_pass).
         self.dirty = False
 
@@ -226,7 +227,8 @@ class Renderer:
 
     def _eye_points(self, i: int) -> list[GatherPoints]:
         s = self.settings
-        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth)
+        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth,
+                          self.lambertian)
                 for stream in self._eye_streams()]
 
     def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int]:
