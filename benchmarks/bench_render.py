@@ -56,11 +56,11 @@ def pass_timings(scene_name: str, res: tuple[int, int], photons: int, passes: in
                  for layout in ("single", "multi")}
     integrator = mi.load_dict({"type": "path", "max_depth": depth})  # Mitsuba's own, same film and depth
 
-    def path_2spp(seed: int) -> float:
-        t = time.perf_counter()
+    def path_2spp(seed: int) -> tuple[float, float]:
+        t, c = time.perf_counter(), time.process_time()
         dr.eval(mi.render(loaded.scene, integrator=integrator, spp=2, seed=seed))
         dr.sync_thread()
-        return time.perf_counter() - t
+        return time.perf_counter() - t, time.process_time() - c
 
     first = {}
     for layout, r in renderers.items():
@@ -69,25 +69,35 @@ def pass_timings(scene_name: str, res: tuple[int, int], photons: int, passes: in
     path_2spp(0)  # compiles
     # Interleaved, one pass of each and one path-traced frame per round, so that a change
     # of the machine's load hits all three alike; medians over the rounds.
+    # CPU seconds (all threads of this process) as well: they move much less with the
+    # load of other jobs than wall-clock seconds do.
     seconds: dict = {layout: [] for layout in renderers}
+    cpu: dict = {layout: [] for layout in renderers}
     stages: dict = {layout: {k: [] for k in renderers[layout].stage_seconds} for layout in renderers}
-    path_times = []
+    path_times, path_cpu = [], []
     for i in range(passes):
         for layout, r in renderers.items():
-            t0, s0 = r.seconds, dict(r.stage_seconds)
+            t0, s0, c0 = r.seconds, dict(r.stage_seconds), time.process_time()
             r.run_pass()
+            cpu[layout].append(time.process_time() - c0)
             seconds[layout].append(r.seconds - t0)
             for k, v in r.stage_seconds.items():
                 stages[layout][k].append(v - s0[k])
-        path_times.append(path_2spp(i + 1))
+        wall, c = path_2spp(i + 1)
+        path_times.append(wall)
+        path_cpu.append(c)
     for layout, r in renderers.items():
         per_stage = {k: float(np.median(v)) for k, v in stages[layout].items()}
         points = r.n_pixels * len(r._eye_streams())  # gather points per pass
         out[layout] = {"pass_seconds": float(np.median(seconds[layout])), "stages": per_stage,
+                       "pass_cpu_seconds": float(np.median(cpu[layout])),
                        "first_pass_seconds": first[layout],
                        "photons_per_s": photons / per_stage["photons"],
                        "gather_points_per_s": points / per_stage["gather"]}
     out["path_2spp_seconds"] = float(np.median(path_times))
+    out["path_2spp_cpu_seconds"] = float(np.median(path_cpu))
+    out["cpu_ratio_multi_vs_path2spp"] = out["multi"]["pass_cpu_seconds"] / out["path_2spp_cpu_seconds"]
+    out["cpu_ratio_multi_vs_single"] = out["multi"]["pass_cpu_seconds"] / out["single"]["pass_cpu_seconds"]
     out["ratio_multi_vs_path2spp"] = out["multi"]["pass_seconds"] / out["path_2spp_seconds"]
     out["ratio_multi_vs_single"] = out["multi"]["pass_seconds"] / out["single"]["pass_seconds"]
     # The same ratios round by round (their spread shows how much the load moved them).
@@ -201,6 +211,11 @@ def report_lines(report: dict, before: dict | None) -> list[str]:
         lines += stage_rows("before:", before["timings"])
     lines += stage_rows("now:" if comparable else "", t)
     lines += [f"| Mitsuba `path` 2 spp | {t['path_2spp_seconds']:.3f} | | | | | |", ""]
+    if "path_2spp_cpu_seconds" in t:
+        lines += [f"CPU seconds per pass (all threads; steadier under load): single {t['single']['pass_cpu_seconds']:.3f}, "
+                  f"multi {t['multi']['pass_cpu_seconds']:.3f}, path 2 spp {t['path_2spp_cpu_seconds']:.3f}; "
+                  f"ratios multi / single **{t['cpu_ratio_multi_vs_single']:.2f}x**, "
+                  f"multi / path 2 spp **{t['cpu_ratio_multi_vs_path2spp']:.2f}x**.", ""]
     if comparable:
         bt = before["timings"]
         lines += [f"Before: the renderer before issue 17 ({DEFAULT_BEFORE.name if before is not None else ''}, "
