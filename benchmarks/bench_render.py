@@ -244,6 +244,23 @@ def report_lines(report: dict, before: dict | None) -> list[str]:
             lines.append(f"| {m['method']} | {m['resolution']} | {m['passes']} | {m['photons']} | {m['peak_rss_gb']:.2f} |")
         worst = max(m["peak_rss_gb"] for m in report["memory"])
         lines += ["", f"* largest: **{worst:.2f} GB** (target < {TARGET_MEMORY_GB:.0f} GB)"]
+    lines += ["", "What issue 17 changed (images bit-identical to the renderer before it, every direct-light "
+              "mode; the before rows come from that renderer's code run by this same benchmark):", "",
+              "* gather: one packet load per photon (16-float records from the photon trace on); direct "
+              "photons last in each bucket, skipped unvisited where direct light is estimated apart; "
+              "Lambertian BSDFs evaluated once per gather point, and no BSDF call in the loop where every "
+              "non-delta BSDF is Lambertian; one loop over photon/cell steps (a SIMD packet runs as long as "
+              "its busiest lane, not the sum of each cell's busiest lane); cells stepped without integer "
+              "division; cells the search sphere misses skipped;",
+              "* grid: built on the device (stable `dr.argsort`, counting pass and prefix sum), no NumPy "
+              "round trip;",
+              "* photons: one packet store per bounce into uninitialised buffers (only the valid flags are "
+              "cleared), one packed copy of the segments;",
+              "* eye: gather points keep the preliminary intersection, each kernel recomputes the surface "
+              "interaction; update: every accumulator in one kernel with one host read.",
+              "",
+              "Not done: the cell size still comes from a host-side quantile of the radii, and the non-finite "
+              "counts are read per stage (a handful of host reads per pass)."]
     conv = report.get("convergence")
     if conv:
         lines += ["", f"Convergence of ~z^1 on `diffuse_glossy` {conv['resolution']} against {conv['reference']}:", "",

@@ -39,10 +39,15 @@ Cost (issue 17): a photon is one packet load of its record (:mod:`.grid`); at
 Lambertian gather points (Mitsuba's ``diffuse``, f cos = rho / pi max(0, cos_o)) the BSDF
 is evaluated once, towards the normal, and scaled by each photon's cos_o, which is what
 ``bsdf.eval`` computes, bit for bit; gather points with direct light apart skip the
-bucket's direct photons without visiting them (the grid keeps them last).
+bucket's direct photons without visiting them (the grid keeps them last). Where every
+non-delta BSDF of the scene is Lambertian, the loop holds no BSDF call at all.
 
-The loops are Dr.Jit symbolic loops: one kernel over all gather points, compiled on
-the first pass and reused afterwards (every per-pass number enters as an opaque array).
+The search is one Dr.Jit symbolic loop whose every step visits one photon and/or moves
+to the next cell of the search box (cells the search sphere misses are empty steps): one
+kernel over all gather points, compiled on the first pass and reused afterwards (every
+per-pass number enters as an opaque array). Each gather point visits its photons in
+the order of the sorted grid, cell by cell, so every sum is bit for bit that of a
+nested cell-then-photon loop.
 """
 
 from __future__ import annotations
@@ -56,9 +61,9 @@ import mitsuba as mi
 from .controllers import DRJIT_OPS
 from .eye import GatherPoints
 from .grid import PhotonGrid, cell_hash, cell_of
-from .photons import REC_D, REC_DEPTH, REC_N, REC_P, REC_POWER, RECORD
 from .hypothesis import cell_index, sector_index
 from .kernels import kernel_weight
+from .photons import REC_D, REC_DEPTH, REC_N, REC_P, REC_POWER, RECORD
 
 if TYPE_CHECKING:
     from .controllers import CellStatistics

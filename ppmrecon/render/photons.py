@@ -19,7 +19,8 @@ e satisfy e + d + 1 <= max_depth (see :mod:`.gather`).
 
 Memory is bounded for any depth: paths are traced in *segments* of at most
 ``SEGMENT_BOUNCES`` bounces into a buffer of ``J_active * bounces`` slots (slot
-``(d - d0) * J_active + j``); the paths still alive at the end of a segment are
+``(d - d0) * J_active + j``, one record of ``RECORD`` floats, stored with one packet
+instruction; only the valid flags are cleared); the paths still alive at the end of a segment are
 compacted, their random streams included, and continue in the next one. The photon
 map's order therefore depends on the seed only (determinism).
 
@@ -78,17 +79,9 @@ class PhotonMap:
         r = self.records()
         return cls(r[at], r[at + 1], r[at + 2])
 
-    @property
-    def p(self) -> mi.Point3f:
-        return self._field(mi.Point3f, REC_P)
-
-    @property
-    def d(self) -> mi.Vector3f:
-        return self._field(mi.Vector3f, REC_D)
-
-    @property
-    def n(self) -> mi.Normal3f:
-        return self._field(mi.Normal3f, REC_N)
+    p = property(lambda self: self._field(mi.Point3f, REC_P), doc="positions x_p")
+    d = property(lambda self: self._field(mi.Vector3f, REC_D), doc="arrival directions")
+    n = property(lambda self: self._field(mi.Normal3f, REC_N), doc="oriented normals")
 
     @property
     def power(self) -> mi.Color3f:
