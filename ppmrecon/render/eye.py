@@ -41,7 +41,7 @@ class GatherPoints:
     depth: mi.Float                # distance along the eye path to the gather point
     n_oriented: mi.Normal3f        # geometric normal facing the eye
     segments: mi.UInt32            # eye-path segments to the gather point (e)
-    nonfinite: int = 0             # non-finite terms dropped on the way
+    nonfinite: int | mi.UInt32 = 0 # non-finite terms dropped on the way (a device count: see trace_eye)
     #: Where the gather point's BSDF is Lambertian (None: unknown, evaluate per photon).
     lambertian: mi.Bool | None = None
     #: Every non-delta BSDF of the scene is Lambertian: the gather needs no BSDF call.
@@ -166,10 +166,12 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
-              rr_depth: int = 5, lambertian: LambertianTable | None = None) -> GatherPoints:
+              rr_depth: int = 5, lambertian: LambertianTable | None = None,
+              defer_counts: bool = False) -> GatherPoints:
     """One eye path per pixel (row-major, top row first) with random stream ``seed``;
     ``max_depth`` in segments, -1 for unbounded; ``lambertian``: :func:`lambertian_table`
-    of the scene (computed here if not given)."""
+    of the scene (computed here if not given). ``defer_counts``: ``nonfinite`` stays a
+    device value (one element), read by the caller when it syncs anyway."""
     film_size = sensor.film().crop_size()
     width, height = int(film_size[0]), int(film_size[1])
     n = width * height
@@ -202,5 +204,5 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
                       segments=segments, lambertian=lambert, only_lambertian=table.only)
     dr.eval(gp.hit, gp.ray, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
             gp.segments, gp.lambertian, bad)
-    gp.nonfinite = int(dr.count(bad)[0]) if n else 0
+    gp.nonfinite = (dr.count(bad) if defer_counts else int(dr.count(bad)[0])) if n else 0
     return gp

@@ -228,10 +228,10 @@ class Renderer:
     def _eye_points(self, i: int) -> list[GatherPoints]:
         s = self.settings
         return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth,
-                          self.lambertian)
+                          self.lambertian, defer_counts=True)
                 for stream in self._eye_streams()]
 
-    def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int]:
+    def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int | mi.UInt32]:
         """Per eye hit point: (where direct light is estimated apart, its estimate); and
         the non-finite samples dropped."""
         s = self.settings
@@ -240,7 +240,8 @@ class Renderer:
         out, dropped = [], 0
         for stream, p in zip(self._eye_streams(), points):
             use = uses_direct(p, s.direct, s.max_depth)
-            light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream))
+            light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream),
+                                      defer_counts=True)
             dropped += bad
             out.append((use, light))
         return out, dropped
@@ -304,7 +305,7 @@ class Renderer:
             chains = self._chains_of(j)
             res = gather(p, [radii[c] for c in chains], grid, s.kernel,
                          self.controller.stats_targets(chains), max_depth=s.max_depth,
-                         indirect_only=None if direct[j] is None else direct[j][0])
+                         indirect_only=None if direct[j] is None else direct[j][0], defer_counts=True)
             dropped["gather"] += res.nonfinite
             results.append((chains, res))
         t4 = clock()
@@ -330,14 +331,16 @@ class Renderer:
             self.normal.add(p.normal, evaluate=False)
             self.depth.add(p.depth, evaluate=False)
         dr.eval(n_bad, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean, self.depth.mean)
-        dropped["estimate"] += int(dr.sum(n_bad)[0]) if self.n_pixels else 0
+        dropped["estimate"] += dr.sum(n_bad) if self.n_pixels else 0
         self.controller.update(i, results)
         t5 = clock()
 
         for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
             self.stage_seconds[name] += dt
+        # The non-finite counts stayed on the device (a host read per stage stalls the
+        # pipeline): read once, now that the pass has synced anyway.
         for name, n in dropped.items():
-            self.nonfinite[name] += n
+            self.nonfinite[name] += n if isinstance(n, int) else int(n[0])
         self.seconds += t5 - t0
         self.passes_done = i
         self.dirty = False
