@@ -52,7 +52,7 @@ nested cell-then-photon loop.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import drjit as dr
@@ -82,18 +82,24 @@ class GatherResult:
     flux: list[mi.Color3f]
     count: list[mi.UInt32]
     nonfinite: int | mi.UInt32 = 0
+    #: With ``evaluate=False``: the statistics arrays the loop scatters into, for the
+    #: caller's ``dr.eval`` (``nonfinite`` is then the per-lane count, unevaluated).
+    pending: list = field(default_factory=list)
 
 
 def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant",
            stats: list["CellStatistics"] | None = None, max_depth: int = -1,
-           indirect_only: mi.Bool | None = None, defer_counts: bool = False) -> GatherResult:
+           indirect_only: mi.Bool | None = None, defer_counts: bool = False,
+           evaluate: bool = True) -> GatherResult:
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
     0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
     slot) also accumulate the per-cell statistics of the photons inside each radius.
     ``max_depth``: segments of the whole path (-1: unbounded). ``indirect_only``: gather
     points whose direct light is estimated apart (:mod:`.direct`); they skip the photons
     that arrive straight from an emitter (bounce index 0). ``defer_counts``: the result's
-    ``nonfinite`` stays a one-element device value (no host read here)."""
+    ``nonfinite`` stays a one-element device value (no host read here). ``evaluate=False``:
+    nothing is evaluated here, so that the caller's ``dr.eval`` runs the search loop in the
+    kernel that also consumes its sums (see the result's ``pending``)."""
     if stats is not None and len(stats) != len(radii):
         raise ValueError("gather: one statistics target per chain slot")
     n_slots = len(radii)
@@ -240,6 +246,9 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         labels=("c", "cell", "k", "end", "flux", "count", "dropped"),
         label="ppmrecon_gather")
     flux, count = list(flux), list(count)
+    if not evaluate:
+        return GatherResult(flux=flux, count=count, nonfinite=dropped,
+                            pending=[st.data for st in stats] if stats is not None else [])
     dr.eval(flux, count, dropped)
     if stats is not None:  # the scatters ran in the loop kernel; make them visible
         dr.eval(*(st.data for st in stats))
