@@ -62,10 +62,11 @@ def _mis(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
     return dr.detach(dr.select(a2 > 0.0, a2 / (a2 + dr.square(pdf_b)), 0.0))
 
 
-def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int) -> tuple[mi.Color3f, int]:
+def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
+                 defer_counts: bool = False) -> tuple[mi.Color3f, int | mi.UInt32]:
     """L_direct at every gather point in ``active`` (0 elsewhere), one emitter sample and
     one BSDF sample each, random stream ``seed``; and how many non-finite samples were
-    dropped."""
+    dropped (``defer_counts``: as a one-element device value, no host read here)."""
     n = dr.width(gp.found)
     rng = make_rng(n, seed)
     si = gp.si
@@ -97,5 +98,6 @@ def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int) 
     total = l_em + l_b
     finite = dr.all(dr.isfinite(total))
     dr.eval(total, finite)
-    bad = int(dr.count(active & ~finite)[0]) if n else 0
+    bad = dr.count(active & ~finite) if n else 0
+    bad = int(bad[0]) if n and not defer_counts else bad
     return dr.select(finite, total, 0.0), bad

@@ -37,12 +37,15 @@ class RunningMean:
     def zeros(cls, size: int) -> "RunningMean":
         return cls(dr.zeros(mi.Color3f, size), dr.zeros(mi.Color3f, size), 0)
 
-    def add(self, value: mi.Color3f) -> None:
+    def add(self, value: mi.Color3f, evaluate: bool = True) -> None:
+        """Fold in one pass; ``evaluate=False`` leaves the update to the caller's
+        ``dr.eval`` (one kernel for several accumulators)."""
         self.n += 1
         delta = value - self.mean
         self.mean = self.mean + delta / opaque_count(self.n)
         self.m2 = self.m2 + delta * (value - self.mean)
-        dr.eval(self.mean, self.m2)
+        if evaluate:
+            dr.eval(self.mean, self.m2)
 
     def variance_of_mean(self) -> mi.Float:
         if self.n < 2:
@@ -64,7 +67,8 @@ class PlainMean:
     mean: object
     n: int = 0
 
-    def add(self, value) -> None:
+    def add(self, value, evaluate: bool = True) -> None:
         self.n += 1
         self.mean = self.mean + (value - self.mean) / opaque_count(self.n)
-        dr.eval(self.mean)
+        if evaluate:
+            dr.eval(self.mean)

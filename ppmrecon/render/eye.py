@@ -31,7 +31,8 @@ from .rng import make_rng
 class GatherPoints:
     """Gather points of one wavefront (one per lane) and their G-buffer values."""
 
-    si: mi.SurfaceInteraction3f   # valid where ``found``
+    hit: mi.PreliminaryIntersection3f  # of ``ray``: the gather point where ``found``
+    ray: mi.Ray3f                  # the eye path's last ray
     found: mi.Bool                 # the path reached a non-delta surface
     beta: mi.Color3f               # throughput camera -> gather point
     emitted: mi.Color3f            # L_e collected on the way
@@ -40,10 +41,21 @@ class GatherPoints:
     depth: mi.Float                # distance along the eye path to the gather point
     n_oriented: mi.Normal3f        # geometric normal facing the eye
     segments: mi.UInt32            # eye-path segments to the gather point (e)
-    nonfinite: int = 0             # non-finite terms dropped on the way
+    nonfinite: int | mi.UInt32 = 0 # non-finite terms dropped on the way (a device count: see trace_eye)
+    #: Where the gather point's BSDF is Lambertian (None: unknown, evaluate per photon).
+    lambertian: mi.Bool | None = None
+    #: Every non-delta BSDF of the scene is Lambertian: the gather needs no BSDF call.
+    only_lambertian: bool = False
 
     def __len__(self) -> int:
         return dr.width(self.found)
+
+    @property
+    def si(self) -> mi.SurfaceInteraction3f:
+        """The gather point's full surface interaction (valid where ``found``), computed
+        inside each kernel that reads it: what ``scene.ray_intersect`` returns, bit for
+        bit, without writing its ~40 values per lane to memory and reading them back."""
+        return self.hit.compute_surface_interaction(self.ray, mi.RayFlags.All, self.found)
 
 
 def _has_null_bsdf(scene: mi.Scene) -> bool:
@@ -55,6 +67,40 @@ def _has_null_bsdf(scene: mi.Scene) -> bool:
         if bsdf is not None and mi.has_flag(bsdf.flags(), mi.BSDFFlags.Null):
             return True
     return False
+
+
+def _is_lambertian(bsdf: mi.BSDF) -> bool:
+    """Mitsuba's `diffuse`, alone or as both sides of a `twosided`: f = rho / pi."""
+    if bsdf.class_name() == "SmoothDiffuse":
+        return True
+    # A twosided's sides show only in its description (a texture below them is fine).
+    nested = [ln.strip() for ln in str(bsdf).splitlines() if ln.strip().startswith("brdf[")]
+    return (bsdf.class_name() == "TwoSidedBRDF" and len(nested) == 2
+            and all(ln.endswith("= SmoothDiffuse[") for ln in nested))
+
+
+@dataclass(frozen=True)
+class LambertianTable:
+    """Per BSDF registry id (``dr.reinterpret_array(mi.UInt32, bsdf_ptr)``): whether that
+    BSDF is Lambertian (so the gather evaluates it once per gather point); ``only``: every
+    BSDF with a diffuse or glossy component is."""
+
+    by_id: mi.Bool
+    only: bool
+
+
+def lambertian_table(scene: mi.Scene) -> LambertianTable:
+    """The :class:`LambertianTable` of ``scene``'s BSDFs."""
+    ids: dict[int, bool] = {}
+    for shape in scene.shapes():
+        bsdf = shape.bsdf()
+        if bsdf is not None:
+            ids[int(dr.reinterpret_array(mi.UInt32, mi.BSDFPtr(bsdf))[0])] = (
+                _is_lambertian(bsdf) or not mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))
+    table = [False] * (max(ids, default=0) + 1)
+    for i, v in ids.items():
+        table[i] = v
+    return LambertianTable(mi.Bool(table), all(ids.values()))
 
 
 @dr.syntax
@@ -120,9 +166,12 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
-              rr_depth: int = 5) -> GatherPoints:
+              rr_depth: int = 5, lambertian: LambertianTable | None = None,
+              defer_counts: bool = False) -> GatherPoints:
     """One eye path per pixel (row-major, top row first) with random stream ``seed``;
-    ``max_depth`` in segments, -1 for unbounded."""
+    ``max_depth`` in segments, -1 for unbounded; ``lambertian``: :func:`lambertian_table`
+    of the scene (computed here if not given). ``defer_counts``: ``nonfinite`` stays a
+    device value (one element), read by the caller when it syncs anyway."""
     film_size = sensor.film().crop_size()
     width, height = int(film_size[0]), int(film_size[1])
     n = width * height
@@ -141,15 +190,19 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     beta *= ray_weight
     emitted *= ray_weight
 
-    si = scene.ray_intersect(last_ray, found)
+    hit = scene.ray_intersect_preliminary(last_ray, False, found)
+    si = hit.compute_surface_interaction(last_ray, mi.RayFlags.All, found)
     bsdf = si.bsdf(last_ray)
     albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
     normal = dr.select(found, si.sh_frame.n, 0.0)
     n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
-    gp = GatherPoints(si=si, found=found, beta=beta, emitted=emitted, albedo=albedo,
+    table = lambertian_table(scene) if lambertian is None else lambertian
+    # A delta-only BSDF counts as Lambertian in the table (it is never a gather point).
+    lambert = found & dr.gather(mi.Bool, table.by_id, dr.reinterpret_array(mi.UInt32, bsdf), found)
+    gp = GatherPoints(hit=hit, ray=last_ray, found=found, beta=beta, emitted=emitted, albedo=albedo,
                       normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
-                      segments=segments)
-    dr.eval(gp.si, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
-            gp.segments, bad)
-    gp.nonfinite = int(dr.count(bad)[0]) if n else 0
+                      segments=segments, lambertian=lambert, only_lambertian=table.only)
+    dr.eval(gp.hit, gp.ray, gp.found, gp.beta, gp.emitted, gp.albedo, gp.normal, gp.depth, gp.n_oriented,
+            gp.segments, gp.lambertian, bad)
+    gp.nonfinite = (dr.count(bad) if defer_counts else int(dr.count(bad)[0])) if n else 0
     return gp

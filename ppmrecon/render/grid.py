@@ -1,11 +1,19 @@
 """Spatial hash grid over one pass's photons (SPEC section 3, step 3).
 
 Photons are bucketed by the hash of their integer cell ``floor(x / cell_size)`` into a
-table of T = 2^k >= 2 J slots and sorted by bucket (a stable numpy argsort, so the
-order, and hence every floating-point sum of the gather, depends on the seed only).
-``start[h] .. end[h]`` then index the sorted photons of bucket h. Different cells can
-share a bucket; the gather compares each photon's own cell with the visited one so a
-photon is never counted twice.
+table of T = 2^k >= 2 J slots and sorted by bucket (a stable sort, so the order, and
+hence every floating-point sum of the gather, depends on the seed only), all on the
+device. With
+``split_direct`` each bucket's photons are further split, stably, into those that
+bounced before arriving (bounce index d >= 1) and the direct ones (d = 0): gather points
+whose direct light is estimated apart (:mod:`.direct`) skip the direct photons without
+visiting them. Sorted photon i of bucket h lies in ``start[2h] <= i < start[2h + 2]``,
+the indirect ones below ``start[2h + 1]``. Different cells can share a bucket; the
+gather compares each photon's own cell with the visited one so a photon is never
+counted twice.
+
+Each photon is one record of ``RECORD`` floats (:mod:`.photons`), so the gather reads a
+photon with one packet load per lane rather than thirteen scattered gathers.
 """
 
 from __future__ import annotations
@@ -16,7 +24,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 
-from .photons import PhotonMap
+from .photons import RECORD, PhotonMap
 
 # Large primes of the classic spatial hash (Teschner et al. 2003).
 _P1, _P2, _P3 = 73856093, 19349663, 83492791
@@ -37,37 +45,39 @@ def cell_hash(c: mi.Vector3i, mask: int) -> mi.UInt32:
 
 @dataclass
 class PhotonGrid:
-    """Photons sorted by bucket, with per-bucket ranges ``start[h] .. end[h]``."""
+    """Photon records sorted by (bucket, direct), with the ranges ``start`` (2 T + 1
+    offsets; see the module docstring)."""
 
-    p: mi.Point3f
-    d: mi.Vector3f
-    n: mi.Normal3f
-    power: mi.Color3f
-    depth: mi.UInt32
+    record: mi.Float
     start: mi.UInt32
-    end: mi.UInt32
     cell_size: float
     table_mask: int
+    split_direct: bool = False
+
+    def __len__(self) -> int:
+        return dr.width(self.record) // RECORD
 
 
-def build_grid(pm: PhotonMap, cell_size: float) -> PhotonGrid:
-    """Bucket the photons of ``pm`` into cells of edge ``cell_size``."""
+def build_grid(pm: PhotonMap, cell_size: float, split_direct: bool = False) -> PhotonGrid:
+    """Bucket the photons of ``pm`` into cells of edge ``cell_size`` (with
+    ``split_direct``, direct photons after the others in every bucket)."""
     n = len(pm)
     table = 1 << max(4, int(np.ceil(np.log2(max(2 * n, 1)))))
     mask = table - 1
     inv_cell = dr.opaque(mi.Float, 1.0 / cell_size)
-    cell = cell_of(pm.p, inv_cell)
-    bucket = cell_hash(cell, mask)
-    bucket_np = np.asarray(bucket, dtype=np.int64) if n else np.zeros(0, np.int64)
-    order_np = np.argsort(bucket_np, kind="stable").astype(np.uint32)
-    counts = np.bincount(bucket_np, minlength=table)
-    end_np = np.cumsum(counts).astype(np.uint32)
-    start_np = (end_np - counts).astype(np.uint32)
-    order = mi.UInt32(order_np)
-    grid = PhotonGrid(
-        p=dr.gather(mi.Point3f, pm.p, order), d=dr.gather(mi.Vector3f, pm.d, order),
-        n=dr.gather(mi.Normal3f, pm.n, order), power=dr.gather(mi.Color3f, pm.power, order),
-        depth=dr.gather(mi.UInt32, pm.depth, order), start=mi.UInt32(start_np), end=mi.UInt32(end_np),
-        cell_size=float(cell_size), table_mask=mask)
-    dr.eval(grid.p, grid.d, grid.n, grid.power, grid.depth, grid.start, grid.end)
+    key = cell_hash(cell_of(pm.p, inv_cell), mask) * 2
+    if split_direct:
+        key += dr.select(pm.depth == 0, mi.UInt32(1), mi.UInt32(0))
+    # On the device, no host round trip: a stable radix sort (dr.argsort) and a counting
+    # pass whose exclusive prefix sum gives every key's first slot (start[2T] = n).
+    counts = dr.zeros(mi.UInt32, 2 * table + 1)
+    record = dr.empty(mi.Float, n * RECORD) if n else dr.zeros(mi.Float, 0)  # every slot is written
+    if n:
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key)
+        order = dr.argsort(key)
+        dr.scatter(record, dr.gather(mi.ArrayXf, pm.record, order, shape=(RECORD, n)), dr.arange(mi.UInt32, n))
+    start = dr.prefix_sum(counts)
+    grid = PhotonGrid(record=record, start=start, cell_size=float(cell_size),
+                      table_mask=mask, split_direct=split_direct)
+    dr.eval(grid.record, grid.start)
     return grid

@@ -36,7 +36,7 @@ from .controllers import CHAIN_SCALES, Controller, make_controller
 from .direct import check_mode as check_direct_mode
 from .direct import direct_light, uses_direct
 from .estimates import PlainMean, RunningMean
-from .eye import GatherPoints, trace_eye
+from .eye import GatherPoints, lambertian_table, trace_eye
 from .gather import gather
 from .grid import build_grid
 from .kernels import KERNELS
@@ -217,6 +217,7 @@ class Renderer:
         self.stage_seconds = {s: 0.0 for s in STAGES}
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
+        self.lambertian = lambertian_table(scene)
         #: True while a pass has changed some accumulators but not all (see run_pass).
         self.dirty = False
 
@@ -226,10 +227,11 @@ class Renderer:
 
     def _eye_points(self, i: int) -> list[GatherPoints]:
         s = self.settings
-        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth)
+        return [trace_eye(self.scene, self.sensor, stream_seed(s.seed, i, stream), s.max_depth, s.rr_depth,
+                          self.lambertian, defer_counts=True)
                 for stream in self._eye_streams()]
 
-    def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int]:
+    def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int | mi.UInt32]:
         """Per eye hit point: (where direct light is estimated apart, its estimate); and
         the non-finite samples dropped."""
         s = self.settings
@@ -238,7 +240,8 @@ class Renderer:
         out, dropped = [], 0
         for stream, p in zip(self._eye_streams(), points):
             use = uses_direct(p, s.direct, s.max_depth)
-            light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream))
+            light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream),
+                                      defer_counts=True)
             dropped += bad
             out.append((use, light))
         return out, dropped
@@ -290,21 +293,32 @@ class Renderer:
             self.controller.start(self._initial_radii(points, photon_map.p))
         radii = self.controller.radii()
         cell = self._cell_size(radii)
-        grid = build_grid(photon_map, cell)
+        # Direct photons last in each bucket, skipped unvisited where direct light is apart.
+        # Only with direct light everywhere: then every gather point that visits them
+        # counts none of them (no room for a segment more), so each sum keeps its order
+        # and the image stays bit-identical; with "glossy" the others would sum in a
+        # different order (rounding-level changes).
+        grid = build_grid(photon_map, cell, split_direct=s.direct == "all")
         t3 = clock()
         results = []
+        # The search loops are not evaluated on their own: the pass's accumulators below
+        # consume their sums in the same kernel (no write and re-read of every chain's
+        # flux and count, one launch fewer); the gather stage times that kernel.
         for j, p in enumerate(points):
             chains = self._chains_of(j)
             res = gather(p, [radii[c] for c in chains], grid, s.kernel,
                          self.controller.stats_targets(chains), max_depth=s.max_depth,
-                         indirect_only=None if direct[j] is None else direct[j][0])
-            dropped["gather"] += res.nonfinite
+                         indirect_only=None if direct[j] is None else direct[j][0], evaluate=False)
             results.append((chains, res))
-        t4 = clock()
 
         inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
+        # Every accumulator of the pass in one kernel, and one host read of the count of
+        # non-finite estimates (per chain, each was a kernel and a pipeline stall).
+        n_bad = dr.zeros(mi.UInt32, self.n_pixels)
+        n_dropped = dr.zeros(mi.UInt32, self.n_pixels)
         for j, (chains, res) in enumerate(results):
             p = points[j]
+            n_dropped += res.nonfinite
             for slot, c in enumerate(chains):
                 reflected = res.flux[slot] * inv_j
                 if direct[j] is not None:
@@ -313,19 +327,29 @@ class Renderer:
                 # Non-finite terms were dropped at their source; this is the last guard
                 # (e.g. a finite sum that overflows), counted apart in the header.
                 finite = dr.all(dr.isfinite(estimate))
-                dropped["estimate"] += int(dr.count(~finite)[0]) if dr.width(finite) else 0
-                self.means[c].add(dr.select(finite, estimate, 0.0))
+                n_bad += dr.select(finite, mi.UInt32(0), mi.UInt32(1))
+                self.means[c].add(dr.select(finite, estimate, 0.0), evaluate=False)
         for p in points:
-            self.albedo.add(p.albedo)
-            self.normal.add(p.normal)
-            self.depth.add(p.depth)
+            self.albedo.add(p.albedo, evaluate=False)
+            self.normal.add(p.normal, evaluate=False)
+            self.depth.add(p.depth, evaluate=False)
+        dr.eval(n_bad, n_dropped, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean,
+                self.depth.mean, [(res.count, res.pending) for _, res in results])
+        for _, res in results:
+            res.nonfinite = 0  # counted in n_dropped
+        if self.n_pixels:
+            dropped["estimate"] += dr.sum(n_bad)
+            dropped["gather"] += dr.sum(n_dropped)
+        t4 = clock()
         self.controller.update(i, results)
         t5 = clock()
 
         for name, dt in zip(STAGES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4)):
             self.stage_seconds[name] += dt
+        # The non-finite counts stayed on the device (a host read per stage stalls the
+        # pipeline): read once, now that the pass has synced anyway.
         for name, n in dropped.items():
-            self.nonfinite[name] += n
+            self.nonfinite[name] += n if isinstance(n, int) else int(n[0])
         self.seconds += t5 - t0
         self.passes_done = i
         self.dirty = False

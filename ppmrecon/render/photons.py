@@ -19,7 +19,8 @@ e satisfy e + d + 1 <= max_depth (see :mod:`.gather`).
 
 Memory is bounded for any depth: paths are traced in *segments* of at most
 ``SEGMENT_BOUNCES`` bounces into a buffer of ``J_active * bounces`` slots (slot
-``(d - d0) * J_active + j``); the paths still alive at the end of a segment are
+``(d - d0) * J_active + j``, one record of ``RECORD`` floats, stored with one packet
+instruction; only the valid flags are cleared); the paths still alive at the end of a segment are
 compacted, their random streams included, and continue in the next one. The photon
 map's order therefore depends on the seed only (determinism).
 
@@ -42,23 +43,58 @@ SEGMENT_BOUNCES = 8
 RR_DEPTH = 5
 
 
-@dataclass
-class PhotonMap:
-    """Photons of one pass, compacted: positions, arrival directions (pointing from the
-    photon's origin to x_p), normals oriented towards the side the photon came from,
-    power, bounce index d, J (photons emitted, the estimator's normaliser), and how many
-    paths a non-finite throughput ended."""
+#: Floats per photon record (13 used; a power of two, so that the trace stores and the
+#: gather reads a photon with one packet instruction per lane).
+RECORD = 16
+#: Offsets of the record's fields: x_p, w_p (arrival direction), n_p, Phi_p, d.
+REC_P, REC_D, REC_N, REC_POWER, REC_DEPTH = 0, 3, 6, 9, 12
 
-    p: mi.Point3f
-    d: mi.Vector3f
-    n: mi.Normal3f
-    power: mi.Color3f
-    depth: mi.UInt32
-    emitted: int
-    nonfinite: int = 0
+
+def make_record(p: mi.Point3f, d: mi.Vector3f, n: mi.Normal3f, power: mi.Color3f, depth: mi.Float) -> mi.ArrayXf:
+    """One photon record per lane (RECORD x lanes), in the REC_* layout."""
+    zero = dr.zeros(mi.Float, dr.width(depth))
+    return mi.ArrayXf(p.x, p.y, p.z, d.x, d.y, d.z, n.x, n.y, n.z, power.x, power.y, power.z, depth,
+                      *([zero] * (RECORD - REC_DEPTH - 1)))
+
+
+class PhotonMap:
+    """Photons of one pass, compacted, one record each (``record``: RECORD floats per
+    photon): positions, arrival directions (pointing from the photon's origin to x_p),
+    normals oriented towards the side the photon came from, power and bounce index d;
+    J (``emitted``, the estimator's normaliser), and how many paths a non-finite
+    throughput ended. The fields read (and ``power`` writes) the records."""
+
+    def __init__(self, record: mi.Float, emitted: int, nonfinite: int = 0):
+        self.record, self.emitted, self.nonfinite = record, emitted, nonfinite
 
     def __len__(self) -> int:
-        return dr.width(self.power) if dr.width(self.depth) else 0
+        return dr.width(self.record) // RECORD
+
+    def records(self) -> mi.ArrayXf:
+        """All records (RECORD x len), lazily."""
+        n = len(self)
+        return dr.gather(mi.ArrayXf, self.record, dr.arange(mi.UInt32, n), shape=(RECORD, n))
+
+    def _field(self, cls: type, at: int):
+        r = self.records()
+        return cls(r[at], r[at + 1], r[at + 2])
+
+    p = property(lambda self: self._field(mi.Point3f, REC_P), doc="positions x_p")
+    d = property(lambda self: self._field(mi.Vector3f, REC_D), doc="arrival directions")
+    n = property(lambda self: self._field(mi.Normal3f, REC_N), doc="oriented normals")
+
+    @property
+    def power(self) -> mi.Color3f:
+        return self._field(mi.Color3f, REC_POWER)
+
+    @power.setter
+    def power(self, value: mi.Color3f) -> None:
+        value = mi.Color3f(value)
+        self.record = _pack([make_record(self.p, self.d, self.n, value, mi.Float(self.depth))])
+
+    @property
+    def depth(self) -> mi.UInt32:
+        return mi.UInt32(self.records()[REC_DEPTH])
 
 
 @dataclass
@@ -87,8 +123,7 @@ def _emit(scene: mi.Scene, rng: mi.PCG32) -> tuple[_Paths, mi.Bool]:
 @dr.syntax
 def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UInt32,
                    bounces: int, last_depth: mi.UInt32, rr_depth: int,
-                   buf_p: mi.Point3f, buf_d: mi.Vector3f, buf_n: mi.Normal3f,
-                   buf_phi: mi.Color3f, buf_valid: mi.UInt32) -> tuple[mi.Bool, mi.Bool]:
+                   buf: mi.Float, buf_valid: mi.Bool) -> tuple[mi.Bool, mi.Bool]:
     """Trace up to ``bounces`` bounces of every alive path, storing the photon of bounce
     d = depth0 + step in slot ``step * lanes + lane``. Stops a path after bounce index
     ``last_depth`` (the last one that may be stored). Returns (alive, went non-finite)."""
@@ -111,11 +146,8 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
         store = alive & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
         n_oriented = dr.select(dr.dot(si.n, ray.d) < 0.0, si.n, -si.n)
         slot = step * lanes + lane
-        dr.scatter(buf_p, si.p, slot, store)
-        dr.scatter(buf_d, ray.d, slot, store)
-        dr.scatter(buf_n, n_oriented, slot, store)
-        dr.scatter(buf_phi, beta, slot, store)
-        dr.scatter(buf_valid, mi.UInt32(1), slot, store)
+        dr.scatter(buf, make_record(si.p, ray.d, n_oriented, beta, mi.Float(depth)), slot, store)
+        dr.scatter(buf_valid, True, slot, store)
 
         bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(),
                                       mi.Point2f(rng.next_float32(), rng.next_float32()), alive)
@@ -136,15 +168,17 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
     return alive, bad
 
 
-def _concat(arrays: list) -> object:
-    """Concatenate arrays of one type by scatters at opaque offsets: one kernel whatever
-    the number of segments or their sizes (``dr.concat`` bakes both into its kernel)."""
-    out = dr.zeros(type(arrays[0]), sum(dr.width(a) for a in arrays))
+def _pack(chunks: list[mi.ArrayXf]) -> mi.Float:
+    """Records of several chunks, one after the other, as one flat array: scatters at
+    opaque offsets, one kernel whatever the number of chunks or their sizes (``dr.concat``
+    bakes both into its kernel)."""
+    out = dr.empty(mi.Float, sum(dr.width(c) for c in chunks) * RECORD)  # every slot is written
     offset = 0
-    for a in arrays:
-        n = dr.width(a)
-        dr.scatter(out, a, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, offset))
+    for c in chunks:
+        n = dr.width(c)
+        dr.scatter(out, c, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, offset))
         offset += n
+    dr.eval(out)
     return out
 
 
@@ -156,7 +190,7 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
     max_bounces = None if max_depth < 0 else max_depth - 1   # storable bounce indices
     # Bounce index after which no photon may be stored (the largest UInt32: never).
     last_depth = mi.UInt32(0xFFFFFFFF if max_bounces is None else max(max_bounces - 1, 0))
-    chunks: list[tuple] = []
+    chunks: list[mi.ArrayXf] = []
     nonfinite = 0
     rng = make_rng(n_photons, seed)
     paths, alive = _emit(scene, rng)
@@ -165,17 +199,15 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
         lanes = dr.width(alive)
         bounces = SEGMENT_BOUNCES if max_bounces is None else min(SEGMENT_BOUNCES, max_bounces - depth0)
         size = lanes * bounces
-        buf_p, buf_d, buf_n = dr.zeros(mi.Point3f, size), dr.zeros(mi.Vector3f, size), dr.zeros(mi.Normal3f, size)
-        buf_phi, buf_valid = dr.zeros(mi.Color3f, size), dr.zeros(mi.UInt32, size)
+        # Only the valid flags need clearing: compress reads the records nowhere else.
+        buf, buf_valid = dr.empty(mi.Float, size * RECORD), dr.zeros(mi.Bool, size)
         alive, bad = _trace_segment(scene, paths, alive, dr.opaque(mi.UInt32, depth0), bounces, last_depth,
-                                    rr_depth, buf_p, buf_d, buf_n, buf_phi, buf_valid)
-        dr.eval(buf_p, buf_d, buf_n, buf_phi, buf_valid, alive, bad, paths.ray, paths.beta, paths.rng)
+                                    rr_depth, buf, buf_valid)
+        dr.eval(buf, buf_valid, alive, bad, paths.ray, paths.beta, paths.rng)
         nonfinite += int(dr.count(bad)[0]) if lanes else 0
-        index = dr.compress(buf_valid > 0)
+        index = dr.compress(buf_valid)
         if dr.width(index):
-            chunks.append((dr.gather(mi.Point3f, buf_p, index), dr.gather(mi.Vector3f, buf_d, index),
-                           dr.gather(mi.Normal3f, buf_n, index), dr.gather(mi.Color3f, buf_phi, index),
-                           index // dr.opaque(mi.UInt32, lanes) + dr.opaque(mi.UInt32, depth0)))
+            chunks.append(dr.gather(mi.ArrayXf, buf, index, shape=(RECORD, dr.width(index))))
         depth0 += bounces
         survivors = dr.compress(alive)
         if dr.width(survivors) == 0:
@@ -187,10 +219,5 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
                        dr.gather(mi.Float, paths.inv_power0, survivors), rng_next)
         alive = dr.full(mi.Bool, True, dr.width(survivors))
 
-    if not chunks:
-        return PhotonMap(dr.zeros(mi.Point3f, 0), dr.zeros(mi.Vector3f, 0), dr.zeros(mi.Normal3f, 0),
-                         dr.zeros(mi.Color3f, 0), dr.zeros(mi.UInt32, 0), n_photons, nonfinite)
-    parts = chunks[0] if len(chunks) == 1 else tuple(_concat([c[k] for c in chunks]) for k in range(5))
-    pm = PhotonMap(*parts, emitted=n_photons, nonfinite=nonfinite)
-    dr.eval(pm.p, pm.d, pm.n, pm.power, pm.depth)
-    return pm
+    record = _pack(chunks) if chunks else dr.zeros(mi.Float, 0)
+    return PhotonMap(record, emitted=n_photons, nonfinite=nonfinite)
