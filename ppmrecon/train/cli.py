@@ -1,7 +1,9 @@
 """``ppmrecon-train``: generate training data, then train the kernel-predicting network.
 
     ppmrecon-train generate --config v2_cpu --out data/v2_cpu [--workers 2]
+    ppmrecon-train generate --config v2 --out data/v2 --ray auto [--reference-chunks 8]
     ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
+    torchrun --nproc-per-node 2 -m ppmrecon.train fit data/cpu --out runs/cpu [--ddp]
 
 ``--config`` takes a JSON file or the name of one that ships with the package
 (``ppmrecon/data/configs/data/*.json`` for ``generate``, ``.../train/*.json`` for ``fit``).
@@ -57,6 +59,19 @@ def build_parser() -> ArgumentParser:
                         f"default: cpu; the issue-12 sets are v2 and v2_cpu)")
     g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
     g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2)")
+    g.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
+                   help="run the work items as Ray tasks instead of local processes: 'auto' joins the "
+                        "cluster this machine belongs to (or $RAY_ADDRESS), 'local' starts one here, or a "
+                        "head address such as ray://host:10001 (needs ppmrecon[distributed])")
+    g.add_argument("--ray-cpus-per-task", type=positive_int, default=1,
+                   help="CPUs (and Dr.Jit threads) per CPU task (default: 1)")
+    g.add_argument("--ray-gpus", default="auto", type=_gpus,
+                   help="GPU tasks at a time: 'auto' (one per GPU of the cluster) or a number (0: CPU only)")
+    g.add_argument("--ray-retries", type=_nonnegative_int, default=2,
+                   help="retries of a failed Ray task before it is recorded as failed (default: 2)")
+    g.add_argument("--reference-chunks", type=positive_int, default=None,
+                   help="split every reference render into this many ranges of passes, rendered as separate "
+                        "items and merged exactly (overrides the config's reference_chunks)")
     g.add_argument("--scenes", type=positive_int, default=None, help="override the number of scenes")
     g.add_argument("--families", default=None,
                    help="comma-separated scene families, overriding the config's (default: the config's; "
@@ -84,6 +99,20 @@ def build_parser() -> ArgumentParser:
     return p
 
 
+def _gpus(text: str) -> str | int:
+    return text if text == "auto" else _nonnegative_int(text)
+
+
+def _nonnegative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
 def _warn(msg: str) -> None:
     sys.stderr.write(f"{PROG}: warning: {msg}\n")
 
@@ -103,7 +132,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.families:
             cfg.families = tuple(f.strip() for f in args.families.split(",") if f.strip())
             cfg.validate(f"--families {args.families}")
-        manifest = generate(cfg, args.out, workers=args.workers, quiet=args.quiet)
+        if args.reference_chunks:
+            cfg.reference_chunks = args.reference_chunks
+            cfg.validate(f"--reference-chunks {args.reference_chunks}")
+        runner = None
+        if args.ray:
+            from .raygen import RayRunner
+
+            runner = RayRunner(args.ray, cpus_per_task=args.ray_cpus_per_task, gpus=args.ray_gpus,
+                               retries=args.ray_retries)
+        manifest = generate(cfg, args.out, workers=args.workers, quiet=args.quiet, runner=runner)
         scenes = manifest["scenes"]
         inputs = [f for s in scenes for f in s.get("inputs", [])]
         agree = [s["agreement"]["relmse_normalised_trimmed"] for s in scenes if s.get("agreement")]
