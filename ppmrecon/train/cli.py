@@ -95,6 +95,10 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
     f.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     f.add_argument("--max-seconds", type=positive_float, default=None, help="stop after the epoch that passes this")
+    f.add_argument("--ddp", action="store_true",
+                   help="train data-parallel in the process group torchrun set up (gloo on CPU, nccl with "
+                        "--device cuda); implied when torchrun starts more than one process. "
+                        "--batch is the global batch, shared out between the ranks")
     f.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -168,8 +172,17 @@ def main(argv: Sequence[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: no CUDA device is available to torch")
-    history = train(args.data, args.out, cfg, resume=args.resume, device=args.device,
-                    quiet=args.quiet, warn=_warn, max_seconds=args.max_seconds)
+    from .distributed import init
+
+    dist = init(args.device, required=args.ddp)
+    try:
+        history = train(args.data, args.out, cfg, resume=args.resume, device=args.device,
+                        quiet=args.quiet, warn=_warn, max_seconds=args.max_seconds, dist=dist)
+    finally:
+        if dist is not None:
+            dist.close()
+    if dist is not None and not dist.main:
+        return 0
     if history and history[-1].get("val"):
         v = history[-1]["val"]
         print(f"{PROG}: {args.out}/model.pt after {history[-1]['epoch']} epochs: validation relMSE "
