@@ -1,0 +1,182 @@
+"""Issue 18: training data on a local Ray cluster (``ray.init(num_cpus=2)``): the same
+files and manifest as the local pool, a restarted driver skips finished items, a killed
+worker's task is retried, and a task that keeps failing is recorded as failed (the
+driver stops with one line naming it)."""
+
+from __future__ import annotations
+
+import functools
+import json
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ppmrecon import buffers as B
+from ppmrecon.cli_common import run_main
+from ppmrecon.train import cli as train_cli
+from ppmrecon.train.datagen import (MANIFEST, DataConfig, GenerationError, describe_item, generate,
+                                    work_item)
+
+try:
+    import ray
+except ImportError:  # the suite installs it (scripts/setup.sh: the [distributed] extra)
+    ray = None
+
+needs_ray = pytest.mark.skipif(ray is None, reason="ray is not installed (pip install 'ppmrecon[distributed]')")
+
+# One scene, two input seeds, two references of two chunks each: six work items.
+TINY = DataConfig(scenes=1, first_seed=1, validation_every=2, resolution=(16, 16), photons=1024,
+                  input_passes=(1, 2, 4), seeds=(0, 1), reference_passes=16, reference_photons=2048,
+                  max_depth=5, reference_chunks=2)
+ITEMS = 6
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    if ray is None:
+        pytest.skip("ray is not installed")
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    # the test's task wrappers live in this module, which Ray workers cannot import
+    ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    yield ray
+    ray.shutdown()
+
+
+@pytest.fixture(scope="module")
+def local_data(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("local")
+    generate(TINY, root, workers=2, quiet=True)  # 2 workers: one Dr.Jit thread each, as a Ray task
+    return root
+
+
+def _images(root: Path) -> dict[str, list[np.ndarray]]:
+    out = {}
+    for path in sorted(root.glob("*/*.exr")):
+        key = f"{path.parent.name}/{path.name}"
+        if path.name.startswith("input_"):
+            buf = B.read_buffers(path)
+            out[key] = [buf.estimates, buf.variances, buf.radii, buf.albedo, buf.normal, buf.depth]
+        else:
+            out[key] = [B.read_rgb(path)[0]]
+    return out
+
+
+def _same_images(a: Path, b: Path) -> None:
+    ia, ib = _images(a), _images(b)
+    assert sorted(ia) == sorted(ib) and len(ia) == 9  # 6 inputs, 2 reference halves, their mean
+    for key in ia:
+        assert all(np.array_equal(x, y) for x, y in zip(ia[key], ib[key])), key
+
+
+def _timeless(manifest: dict) -> dict:
+    """The manifest without wall-clock figures."""
+    drop = {"seconds", "render_seconds", "wall_seconds", "generation_seconds"}
+
+    def strip(x):
+        if isinstance(x, dict):
+            return {k: strip(v) for k, v in x.items() if k not in drop}
+        if isinstance(x, list):
+            return [strip(v) for v in x]
+        return x
+    return strip(manifest)
+
+
+def _runner(**kw):
+    from ppmrecon.train.raygen import RayRunner
+
+    return RayRunner("auto", **kw)
+
+
+@needs_ray
+@pytest.mark.slow
+def test_ray_generates_the_local_data_set_and_a_rerun_skips_it(cluster, local_data, tmp_path):
+    root = tmp_path / "ray"
+    manifest = generate(TINY, root, quiet=True, runner=_runner())
+    _same_images(local_data, root)
+    local = json.loads((local_data / MANIFEST).read_text())
+    assert _timeless(json.loads(json.dumps(manifest))) == _timeless(local)
+    scene = manifest["scenes"][0]
+    assert sorted(scene["items"]) == ["inputs_s0", "inputs_s1", "reference_a_c01", "reference_a_c02",
+                                      "reference_b_c01", "reference_b_c02"]
+    assert [r["chunks"] for r in scene["references"]] == [2, 2] and scene["agreement"]["relmse"] > 0
+    # a restarted driver finds everything done: no task is submitted
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    again = generate(TINY, root, quiet=True, runner=_runner(item=functools.partial(_counting, calls=calls)))
+    assert list(calls.iterdir()) == [] and _timeless(again) == _timeless(manifest)
+
+
+def _counting(job: dict, calls: Path) -> dict:
+    (calls / f"{job['id']}-{job['kind']}-{job.get('seed')}-{job.get('half')}-{job.get('chunk')}").touch()
+    return work_item(job)
+
+
+def _dies_once(job: dict, marker: Path) -> dict:
+    """Kill the worker process on the first attempt of input seed 0 (no exception: the
+    process is gone, as when a node fails); render normally otherwise."""
+    if job["kind"] == "inputs" and job["seed"] == 0 and not marker.exists():
+        marker.touch()
+        os._exit(1)
+    return work_item(job)
+
+
+def _always_fails(job: dict, calls: Path) -> dict:
+    (calls / f"attempt-{len(list(calls.iterdir()))}").touch()
+    if job["kind"] == "reference" and job.get("half") == 1 and job.get("chunk") == 1:
+        raise RuntimeError("injected failure\nsecond line of the message")
+    return work_item(job)
+
+
+def _partial_copy(local_data: Path, dest: Path, remove: list[str]) -> Path:
+    shutil.copytree(local_data, dest)
+    folder = next(p for p in dest.iterdir() if p.is_dir())
+    for name in remove:
+        (folder / name).unlink()
+    return dest
+
+
+@needs_ray
+def test_a_killed_worker_is_retried_and_only_missing_items_run(cluster, local_data, tmp_path):
+    root = _partial_copy(local_data, tmp_path / "partial",
+                         [f"input_n000{n}_s0.exr" for n in (1, 2, 4)]
+                         + ["reference_b.chunk02of02.npz", "reference_b.exr"])
+    marker = tmp_path / "died"
+    manifest = generate(TINY, root, quiet=True, runner=_runner(retries=1, item=functools.partial(_dies_once, marker=marker)))
+    assert marker.exists()  # the first attempt did die
+    _same_images(local_data, root)
+    assert "failed" not in json.dumps(manifest)
+
+
+@needs_ray
+def test_a_task_that_keeps_failing_is_recorded_and_reported(cluster, local_data, tmp_path):
+    root = _partial_copy(local_data, tmp_path / "partial", ["reference_b.chunk02of02.npz", "reference_b.exr", "input_n0002_s1.exr"])
+    calls = tmp_path / "calls"
+    calls.mkdir()
+    with pytest.raises(GenerationError) as info:
+        generate(TINY, root, quiet=True, runner=_runner(retries=1, item=functools.partial(_always_fails, calls=calls)))
+    msg = str(info.value)
+    assert len(msg.splitlines()) == 1
+    assert "0000_caustics reference_b_c02" in msg and "2 attempt(s)" in msg and "injected failure" in msg
+    assert len(list(calls.iterdir())) == 3   # inputs_s1 once, the failing chunk twice (1 retry)
+    manifest = json.loads((root / MANIFEST).read_text())
+    scene = manifest["scenes"][0]
+    assert scene["items"]["reference_b_c02"]["failed"] == "RuntimeError: injected failure"
+    assert "failed" not in scene["items"]["inputs_s1"]          # the other item finished
+    assert "reference_b.exr" not in {f["file"] for f in scene["references"]}  # not merged from half the passes
+    assert describe_item({"id": "x", "kind": "reference", "half": 1, "chunk": 1}) == "x reference_b_c02"
+    # the rerun (healthy now) retries the failed item and completes the data set
+    generate(TINY, root, quiet=True, runner=_runner())
+    _same_images(local_data, root)
+
+
+def test_ray_option_without_ray_installed_is_one_line(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    rc = run_main(train_cli.PROG, train_cli.main,
+                  ["generate", "--config", "tiny", "--out", str(tmp_path / "d"), "--ray", "auto"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1
+    assert "ppmrecon[distributed]" in err and "--ray" in err
