@@ -58,7 +58,7 @@ def build_parser() -> ArgumentParser:
                    help=f"data-set budgets: a JSON file or a shipped set ({', '.join(builtin_configs('data'))}; "
                         f"default: cpu; the issue-12 sets are v2 and v2_cpu)")
     g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
-    g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2)")
+    g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2; not used with --ray)")
     g.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
                    help="run the work items as Ray tasks instead of local processes: 'auto' joins the "
                         "cluster this machine belongs to (or $RAY_ADDRESS), 'local' starts one here, or a "

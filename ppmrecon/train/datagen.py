@@ -272,32 +272,27 @@ def work_item(job: dict[str, Any]) -> dict[str, Any]:
     scene = mi.load_dict(build_scene(job["params"], *cfg.resolution))
     name = f"generated:{job['id']}"
     files: list[dict[str, Any]] = []
-    if job["kind"] == "reference" and job.get("chunk") is not None:
-        half, chunk = job["half"], job["chunk"]
+    if job["kind"] == "reference":
+        half, chunk = job["half"], job.get("chunk")
         seed = REFERENCE_SEED_BASE[half] + job["scene_seed"]
-        first, last = reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)[chunk]
+        first, last = ((1, cfg.reference_passes) if chunk is None
+                       else reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)[chunk])
         r = Renderer(scene, RenderSettings(passes=last, photons=cfg.reference_photons,
                                            seed=seed, layout="single", max_depth=cfg.max_depth), scene_name=name)
         r.start_at(first)
         res = r.run()
-        fname = chunk_name(reference_files(cfg)[half], chunk, cfg.reference_chunks)
-        acc = r.means[0]
-        write_chunk(folder / fname, np.array(acc.mean), np.array(acc.m2),
-                    {"first_pass": first, "last_pass": last, "count": acc.n, "seed": seed,
-                     "width": r.width, "height": r.height, "header": res.header})
-        files.append({"file": fname, "first_pass": first, "last_pass": last, "passes": acc.n,
-                      "photons": cfg.reference_photons, "seed": seed, "seconds": res.seconds})
-        render_seconds = res.seconds
-    elif job["kind"] == "reference":
-        half = job["half"]
-        seed = REFERENCE_SEED_BASE[half] + job["scene_seed"]
-        r = Renderer(scene, RenderSettings(passes=cfg.reference_passes, photons=cfg.reference_photons,
-                                           seed=seed, layout="single", max_depth=cfg.max_depth), scene_name=name)
-        res = r.run()
-        fname = reference_files(cfg)[half]
-        B.write_rgb(folder / fname, res.estimates[0], header=res.header)
-        files.append({"file": fname, "passes": res.passes, "photons": cfg.reference_photons,
-                      "seed": seed, "seconds": res.seconds})
+        entry = {"photons": cfg.reference_photons, "seed": seed, "seconds": res.seconds}
+        if chunk is None:
+            fname = reference_files(cfg)[half]
+            B.write_rgb(folder / fname, res.estimates[0], header=res.header)
+            files.append({"file": fname, "passes": res.passes, **entry})
+        else:
+            fname = chunk_name(reference_files(cfg)[half], chunk, cfg.reference_chunks)
+            acc = r.means[0]
+            write_chunk(folder / fname, np.array(acc.mean), np.array(acc.m2),
+                        {"first_pass": first, "last_pass": last, "count": acc.n, "seed": seed,
+                         "width": r.width, "height": r.height, "header": res.header})
+            files.append({"file": fname, "first_pass": first, "last_pass": last, "passes": acc.n, **entry})
         render_seconds = res.seconds
     else:
         seed = job["seed"]
@@ -465,11 +460,11 @@ class Runner(Protocol):
 class LocalRunner:
     """A pool of ``workers`` spawned processes on this machine."""
 
-    def __init__(self, workers: int = 1):
+    def __init__(self, workers: int = 1, threads: int | None = None):
         self.workers = max(1, workers)
         self.label = f"{self.workers} local worker{'s' if self.workers > 1 else ''}"
-        # Dr.Jit threads: the cores shared out between the workers
-        self.threads = max(1, (os.cpu_count() or 1) // self.workers)
+        # Dr.Jit threads: by default the cores shared out between the workers
+        self.threads = threads or max(1, (os.cpu_count() or 1) // self.workers)
 
     def run(self, jobs: list[dict[str, Any]]) -> Iterator[dict[str, Any]]:
         ctx = mp.get_context("spawn")  # Dr.Jit and torch do not survive fork

@@ -244,8 +244,10 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
             opt.step()
             losses.append(value)
             progress.update(epoch * cfg.steps_per_epoch + step + 1, epoch=epoch + 1, loss=f"{np.mean(losses[-20:]):.4f}")
+        step_seconds = time.perf_counter() - t0
         val = _validate(model, val_samples, dev, dist)
         record = {"epoch": epoch + 1, "loss": float(np.mean(losses)), "seconds": time.perf_counter() - t0,
+                  "step_seconds": step_seconds,
                   "val_passes": val_passes, "val": val, "val_images": val_ids, "step_losses": losses,
                   "ranks": dist.world if dist is not None else 1}
         history.append(record)
