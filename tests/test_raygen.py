@@ -180,3 +180,36 @@ def test_ray_option_without_ray_installed_is_one_line(tmp_path, capsys, monkeypa
     err = capsys.readouterr().err.strip()
     assert rc == 2 and len(err.splitlines()) == 1
     assert "ppmrecon[distributed]" in err and "--ray" in err
+
+
+def test_chunked_reference_is_the_single_render(local_data, tmp_path):
+    """reference_a.exr merged from its two chunks equals the unchunked 16-pass render of
+    the same seed (up to float32 rounding of the running mean)."""
+    from dataclasses import asdict, replace
+
+    scene = json.loads((local_data / MANIFEST).read_text())["scenes"][0]
+    whole = replace(TINY, reference_chunks=1)
+    work_item({"kind": "reference", "half": 0, "id": scene["id"], "scene_seed": scene["seed"],
+               "params": scene["params"], "folder": str(tmp_path), "config": asdict(whole), "threads": 1})
+    single, header = B.read_rgb(tmp_path / "reference_a.exr")
+    merged, merged_header = B.read_rgb(local_data / scene["id"] / "reference_a.exr")
+    assert merged_header[B.H_PASSES] == header[B.H_PASSES] == 16 and merged_header["ppmrecon.data.chunks"] == 2
+    assert single.max() > 0
+    np.testing.assert_allclose(merged, single, rtol=0, atol=1e-5 * single.max())
+
+
+@needs_ray
+def test_generate_cli_with_ray(cluster, local_data, tmp_path, capsys):
+    root = tmp_path / "done"
+    shutil.copytree(local_data, root)
+    config = tmp_path / "tiny.json"
+    from dataclasses import asdict
+
+    config.write_text(json.dumps(asdict(TINY)))
+    args = ["generate", "--config", str(config), "--out", str(root), "--ray", "auto", "--quiet"]
+    assert run_main(train_cli.PROG, train_cli.main, args) == 0
+    assert f"data set {root}: 1 scenes, 6 inputs" in capsys.readouterr().out
+    # another chunk count is another configuration: refused in one line
+    assert run_main(train_cli.PROG, train_cli.main, args + ["--reference-chunks", "4"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "another configuration" in err
