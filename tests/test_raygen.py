@@ -17,6 +17,7 @@ import pytest
 
 from ppmrecon import buffers as B
 from ppmrecon.cli_common import run_main
+from ppmrecon.errors import UsageError
 from ppmrecon.train import cli as train_cli
 from ppmrecon.train.datagen import (MANIFEST, DataConfig, GenerationError, describe_item, generate,
                                     work_item)
@@ -213,3 +214,19 @@ def test_generate_cli_with_ray(cluster, local_data, tmp_path, capsys):
     assert run_main(train_cli.PROG, train_cli.main, args + ["--reference-chunks", "4"]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "another configuration" in err
+
+
+@needs_ray
+def test_task_slots_follow_the_cluster_resources(cluster, monkeypatch):
+    """GPU tasks: one per GPU (each also takes a CPU); CPU tasks: the other CPUs."""
+    runner = _runner()
+    assert runner.slots() == (0, 2)   # this test's cluster: 2 CPUs, no GPU
+    cases = [({"CPU": 8, "GPU": 2}, {}, (2, 6)), ({"CPU": 8, "GPU": 2}, {"cpus_per_task": 2}, (2, 3)),
+             ({"CPU": 8, "GPU": 2}, {"gpus": 0}, (0, 8)), ({"CPU": 2, "GPU": 2}, {}, (2, 0)),
+             ({"CPU": 1}, {"cpus_per_task": 4}, (0, 1))]
+    for resources, options, want in cases:
+        monkeypatch.setattr(cluster, "cluster_resources", lambda r=resources: dict(r))
+        assert _runner(**options).slots() == want, (resources, options)
+    monkeypatch.setattr(cluster, "cluster_resources", lambda: {"CPU": 8})
+    with pytest.raises(UsageError, match="--ray-gpus 1: the Ray cluster has 0 GPU"):
+        _runner(gpus=1)

@@ -11,7 +11,8 @@ keeps the manifest, the resumability and the files of the local path
 * GPU or CPU: with ``gpus="auto"``, as many tasks as the cluster has GPUs run at a time
   as GPU tasks (``num_gpus=1``, Mitsuba's ``cuda_ad_rgb``) and the others as CPU tasks
   (``num_cpus=cpus_per_task``, ``llvm_ad_rgb``); each free slot takes the next item, so a
-  mixed cluster keeps both kinds of worker busy. The manifest's ``items`` record the
+  mixed cluster keeps both kinds of worker busy; the slots are counted again after every
+  finished task, so nodes that join later are used. The manifest's ``items`` record the
   variant each item ran on (CUDA and LLVM renders agree only statistically).
 * Failures: a task whose worker dies (killed, out of memory) or that raises is retried
   up to ``retries`` times by Ray (``max_retries``, ``retry_exceptions``); after that it
@@ -97,20 +98,27 @@ class RayRunner:
     def __init__(self, address: str = "auto", cpus_per_task: int = 1, gpus: str | int = "auto",
                  retries: int = DEFAULT_RETRIES, item: Callable[[dict[str, Any]], dict[str, Any]] = work_item):
         self.ray = connect(address)
-        resources = self.ray.cluster_resources()
         self.cpus_per_task = max(1, int(cpus_per_task))
-        have_gpus = int(resources.get("GPU", 0))
-        self.gpu_slots = have_gpus if gpus == "auto" else min(int(gpus), have_gpus)
-        if gpus != "auto" and int(gpus) > have_gpus:
-            raise UsageError(f"--ray-gpus {gpus}: the Ray cluster has {have_gpus} GPU(s)")
-        # A GPU task still takes one CPU (Ray's default); the rest run CPU tasks.
-        spare = int(resources.get("CPU", 1)) - self.gpu_slots
-        self.cpu_slots = max(0 if self.gpu_slots else 1, spare // self.cpus_per_task)
+        self.gpus = gpus
+        have = int(self.ray.cluster_resources().get("GPU", 0))
+        if gpus != "auto" and int(gpus) > have:
+            raise UsageError(f"--ray-gpus {gpus}: the Ray cluster has {have} GPU(s)")
         self.retries = retries
         self.item = item
         self.threads = self.cpus_per_task
-        self.label = f"Ray: {self.cpu_slots} CPU + {self.gpu_slots} GPU task slots"
+        gpu_slots, cpu_slots = self.slots()
+        self.label = f"Ray: {cpu_slots} CPU + {gpu_slots} GPU task slots"
         self._task = self.ray.remote(_remote_item)
+
+    def slots(self) -> tuple[int, int]:
+        """(GPU tasks, CPU tasks) the cluster runs at a time now; asked again after every
+        finished task, so nodes that join (autoscaling) are used."""
+        resources = self.ray.cluster_resources()
+        have = int(resources.get("GPU", 0))
+        gpu = have if self.gpus == "auto" else min(int(self.gpus), have)
+        # A GPU task still takes one CPU (Ray's default); the rest run CPU tasks.
+        spare = int(resources.get("CPU", 1)) - gpu
+        return gpu, max(0 if gpu else 1, spare // self.cpus_per_task)
 
     def _submit(self, job: dict[str, Any], gpu: bool) -> Any:
         job = {**job, "variant": GPU_VARIANT if gpu else CPU_VARIANT}
@@ -121,16 +129,17 @@ class RayRunner:
     def run(self, jobs: list[dict[str, Any]]) -> Iterator[dict[str, Any]]:
         pending = deque(jobs)
         running: dict[Any, tuple[dict[str, Any], bool]] = {}
-        free = {True: self.gpu_slots, False: self.cpu_slots}
         while pending or running:
+            capacity = dict(zip((True, False), self.slots()))
             for gpu in (True, False):
-                while pending and free[gpu] > 0:
+                busy = sum(1 for _, g in running.values() if g == gpu)
+                for _ in range(max(0, capacity[gpu] - busy)):
+                    if not pending:
+                        break
                     job = pending.popleft()
                     running[self._submit(job, gpu)] = (job, gpu)
-                    free[gpu] -= 1
             ready, _ = self.ray.wait(list(running), num_returns=1)
-            job, gpu = running.pop(ready[0])
-            free[gpu] += 1
+            job, _ = running.pop(ready[0])
             try:
                 res = self.ray.get(ready[0])
             except Exception as exc:  # RayTaskError (raised every attempt), WorkerCrashedError, ...
