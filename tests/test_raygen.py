@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import json
+from dataclasses import asdict, replace
 import os
 import shutil
 import sys
@@ -186,8 +187,6 @@ def test_ray_option_without_ray_installed_is_one_line(tmp_path, capsys, monkeypa
 def test_chunked_reference_is_the_single_render(local_data, tmp_path):
     """reference_a.exr merged from its two chunks equals the unchunked 16-pass render of
     the same seed (up to float32 rounding of the running mean)."""
-    from dataclasses import asdict, replace
-
     scene = json.loads((local_data / MANIFEST).read_text())["scenes"][0]
     whole = replace(TINY, reference_chunks=1)
     work_item({"kind": "reference", "half": 0, "id": scene["id"], "scene_seed": scene["seed"],
@@ -204,8 +203,6 @@ def test_generate_cli_with_ray(cluster, local_data, tmp_path, capsys):
     root = tmp_path / "done"
     shutil.copytree(local_data, root)
     config = tmp_path / "tiny.json"
-    from dataclasses import asdict
-
     config.write_text(json.dumps(asdict(TINY)))
     args = ["generate", "--config", str(config), "--out", str(root), "--ray", "auto", "--quiet"]
     assert run_main(train_cli.PROG, train_cli.main, args) == 0
@@ -230,3 +227,11 @@ def test_task_slots_follow_the_cluster_resources(cluster, monkeypatch):
     monkeypatch.setattr(cluster, "cluster_resources", lambda: {"CPU": 8})
     with pytest.raises(UsageError, match="--ray-gpus 1: the Ray cluster has 0 GPU"):
         _runner(gpus=1)
+
+
+def test_a_raising_item_in_the_local_pool_comes_back_as_a_failure():
+    from ppmrecon.train.datagen import _local_item
+
+    res = _local_item({"kind": "inputs", "seed": 1, "id": "0007_glossy", "config": asdict(TINY)})
+    assert res["error"] == "KeyError: 'folder'" and res["attempts"] == 1
+    assert describe_item(res) == "0007_glossy inputs_s1"
