@@ -209,3 +209,51 @@ def test_ddp_flag_outside_torchrun_is_one_line(synthetic_data, tmp_path, capsys,
     assert rc == 2 and len(err.splitlines()) == 1
     assert "--ddp" in err and "torchrun --nproc-per-node" in err
     assert not (tmp_path / "r").exists()
+
+
+class _OneProcessDist:
+    """Stands in for rank ``rank`` of ``world`` without a process group: sums over ranks
+    are the caller's business (the test adds the ranks' gradients itself)."""
+
+    def __init__(self, rank: int, world: int):
+        self.rank, self.world = rank, world
+
+    def all_sum(self, values: list[float]) -> list[float]:
+        return list(values)
+
+
+def test_rank_losses_average_to_the_global_batch_gradient():
+    """The per-rank scaled losses of two shards, back-propagated and averaged as DDP
+    averages them, give the one-process gradient of the same batch; a rank with no row of
+    the batch back-propagates zeros into every parameter (so DDP's all-reduce still fires)."""
+    from ppmrecon.model.guard import GuardConfig
+    from ppmrecon.model.kpn import build
+    from ppmrecon.train.loop import TrainConfig, _step_loss
+
+    samples = _samples(4)
+    cfg = TrainConfig(batch=5, patch=16)
+    torch.manual_seed(0)
+    model = build("tiny", FeatureConfig(), GuardConfig())
+    catalog = [tuple(s.y.shape[-2:]) for s in samples]
+
+    def grads(loss: torch.Tensor) -> list[torch.Tensor]:
+        model.zero_grad(set_to_none=True)
+        loss.backward()
+        return [p.grad.clone() for p in model.parameters()]
+
+    one = PatchSampler(samples, patch=16, seed=3)
+    want = grads(_step_loss(model, one, cfg, GuardConfig(), torch.device("cpu"), None)[0])
+    per_rank = []
+    for r in range(2):
+        shard = PatchSampler([s for s in samples if s.index % 2 == r], patch=16, seed=3, catalog=catalog,
+                             positions=[s.index for s in samples if s.index % 2 == r])
+        per_rank.append(grads(_step_loss(model, shard, cfg, GuardConfig(), torch.device("cpu"),
+                                         _OneProcessDist(r, 2))[0]))
+    for w, a, b in zip(want, *per_rank):
+        torch.testing.assert_close((a + b) / 2, w, rtol=1e-5, atol=1e-8)
+
+    lonely = PatchSampler([samples[0]], patch=16, seed=3, catalog=catalog, positions=[0])
+    lonely.plan = lambda size: [(1, 0, 0, 0, False, 16)] * size  # every row belongs to the other rank
+    loss, total = _step_loss(model, lonely, cfg, GuardConfig(), torch.device("cpu"), _OneProcessDist(0, 2))
+    assert loss.item() == 0.0 and total == 0.0
+    assert all(g is not None and not g.any() for g in grads(loss))
