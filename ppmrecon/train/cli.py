@@ -4,6 +4,7 @@
     ppmrecon-train generate --config v2 --out data/v2 --ray auto [--reference-chunks 8]
     ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
     torchrun --nproc-per-node 2 -m ppmrecon.train fit data/cpu --out runs/cpu [--ddp]
+    ppmrecon-train fit data/cpu --out runs/cpu --ddp --nproc-per-node 2   (torchrun --standalone for you)
 
 ``--config`` takes a JSON file or the name of one that ships with the package
 (``ppmrecon/data/configs/data/*.json`` for ``generate``, ``.../train/*.json`` for ``fit``).
@@ -99,6 +100,9 @@ def build_parser() -> ArgumentParser:
                    help="train data-parallel in the process group torchrun set up (gloo on CPU, nccl with "
                         "--device cuda); implied when torchrun starts more than one process. "
                         "--batch is the global batch, shared out between the ranks")
+    f.add_argument("--nproc-per-node", type=positive_int, default=None, metavar="N",
+                   help="with --ddp outside torchrun: start N processes on this machine through "
+                        "`torchrun --standalone` (under torchrun: not allowed, torchrun's own option sets it)")
     f.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
@@ -172,8 +176,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: no CUDA device is available to torch")
-    from .distributed import init
+    from .distributed import init, launched_by_torchrun
 
+    if args.nproc_per_node is not None:
+        if not args.ddp or launched_by_torchrun():
+            raise UsageError("--nproc-per-node: only with --ddp and outside torchrun (torchrun's own "
+                             "--nproc-per-node sets the processes there)")
+        return _torchrun_standalone(args.nproc_per_node, list(sys.argv[1:] if argv is None else argv))
     dist = init(args.device, required=args.ddp)
     try:
         history = train(args.data, args.out, cfg, resume=args.resume, device=args.device,
@@ -190,8 +199,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _torchrun_standalone(nproc: int, argv: list[str]) -> int:
+    """Run this command again in ``nproc`` processes of a one-machine torchrun group;
+    returns torchrun's exit status."""
+    import subprocess
+
+    rest, skip = [], False
+    for a in argv:  # the same arguments less --nproc-per-node (torchrun takes it)
+        if skip:
+            skip = False
+        elif a == "--nproc-per-node":
+            skip = True
+        elif not a.startswith("--nproc-per-node="):
+            rest.append(a)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
+           "-m", "ppmrecon.train", *rest]
+    return subprocess.run(cmd).returncode
+
+
 def entry() -> None:
-    raise SystemExit(run_main(PROG, main))
+    code = run_main(PROG, main)
+    distributed = sys.modules.get("ppmrecon.train.distributed")
+    if distributed is not None and distributed.joined:
+        distributed.exit_process(code)
+    raise SystemExit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover
