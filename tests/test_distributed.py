@@ -162,11 +162,14 @@ def synthetic_data(tmp_path_factory) -> Path:
     return root
 
 
-def _fit(data: Path, out: Path, procs: int, epochs: int, resume: bool = False) -> list[dict]:
+def _fit(data: Path, out: Path, procs: int, epochs: int, resume: bool = False, self_launch: bool = False) -> list[dict]:
+    """``fit`` in ``procs`` processes: torchrun, or (``self_launch``) ``--ddp --nproc-per-node``."""
     args = ["fit", str(data), "--out", str(out), "--epochs", str(epochs), "--steps-per-epoch", "4",
             "--batch", "6", "--lr", "1e-3", "--threads", "1", "--quiet"] + (["--resume"] if resume else [])
     if procs == 1:
         cmd = [sys.executable, "-m", "ppmrecon.train"] + args
+    elif self_launch:
+        cmd = [sys.executable, "-m", "ppmrecon.train"] + args + ["--ddp", "--nproc-per-node", str(procs)]
     else:
         cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={procs}",
                "-m", "ppmrecon.train"] + args + ["--ddp"]
@@ -194,9 +197,9 @@ def test_two_gloo_processes_train_as_one_with_the_same_global_batch(synthetic_da
     a = torch.load(tmp_path / "one" / "model.pt", weights_only=True)["state_dict"]
     b = torch.load(tmp_path / "two" / "model.pt", weights_only=True)["state_dict"]
     assert all(torch.allclose(a[k], b[k], rtol=1e-4, atol=1e-6) for k in a)
-    # resume continues both the same way
+    # resume continues both the same way (this time fit starts torchrun itself)
     one = _fit(synthetic_data, tmp_path / "one", 1, 3, resume=True)
-    two = _fit(synthetic_data, tmp_path / "two", 2, 3, resume=True)
+    two = _fit(synthetic_data, tmp_path / "two", 2, 3, resume=True, self_launch=True)
     assert [h["epoch"] for h in two] == [1, 2, 3]
     np.testing.assert_allclose(_curve(two), _curve(one), rtol=1e-4)
 
@@ -209,6 +212,10 @@ def test_ddp_flag_outside_torchrun_is_one_line(synthetic_data, tmp_path, capsys,
     assert rc == 2 and len(err.splitlines()) == 1
     assert "--ddp" in err and "torchrun --nproc-per-node" in err
     assert not (tmp_path / "r").exists()
+    rc = run_main(train_cli.PROG, train_cli.main, ["fit", str(synthetic_data), "--out", str(tmp_path / "r"),
+                                                   "--nproc-per-node", "2"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2 and len(err.splitlines()) == 1 and "--nproc-per-node: only with --ddp" in err
 
 
 class _OneProcessDist:
