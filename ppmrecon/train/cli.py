@@ -23,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..cli_common import ArgumentParser, positive_float, positive_int, run_main
+from ..cli_common import ArgumentParser, nonnegative_int, positive_float, positive_int, run_main
 from ..data import CONFIGS
 from ..errors import UsageError
 
@@ -68,7 +68,7 @@ def build_parser() -> ArgumentParser:
                    help="CPUs (and Dr.Jit threads) per CPU task (default: 1)")
     g.add_argument("--ray-gpus", default="auto", type=_gpus,
                    help="GPU tasks at a time: 'auto' (one per GPU of the cluster) or a number (0: CPU only)")
-    g.add_argument("--ray-retries", type=_nonnegative_int, default=2,
+    g.add_argument("--ray-retries", type=nonnegative_int, default=2,
                    help="retries of a failed Ray task before it is recorded as failed (default: 2)")
     g.add_argument("--reference-chunks", type=positive_int, default=None,
                    help="split every reference render into this many ranges of passes, rendered as separate "
@@ -108,17 +108,8 @@ def build_parser() -> ArgumentParser:
 
 
 def _gpus(text: str) -> str | int:
-    return text if text == "auto" else _nonnegative_int(text)
-
-
-def _nonnegative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"'{text}' is not an integer") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
-    return value
+    """argparse type of --ray-gpus: "auto" or an integer >= 0."""
+    return text if text == "auto" else nonnegative_int(text)
 
 
 def _warn(msg: str) -> None:
