@@ -253,7 +253,10 @@ def describe_item(res: dict[str, Any]) -> str:
 def work_item(job: dict[str, Any]) -> dict[str, Any]:
     """Render one item (in a worker process or Ray task) into ``job["folder"]``: all
     snapshots of one input seed, one reference render, or one chunk of a reference's
-    passes. Returns the item's files and times; raises on failure."""
+    passes. Returns the item's files and times; raises on failure. Meant for a worker
+    process: ``job["threads"]`` sets Dr.Jit's thread count of the whole process (after
+    which Mitsuba 3.9's ``Bitmap.write`` of an EXR deadlocks, so not in a process that
+    goes on using Mitsuba's image I/O)."""
     from ..backend import choose_variant
 
     variant = choose_variant(job.get("variant"))
