@@ -4,7 +4,8 @@
 #     backend crashes at JIT time with the preinstalled LLVM 14/15).
 #  2. A virtual environment in .venv (override with PPMRECON_VENV).
 #  3. torch==2.13.0 first: the CPU build on this machine's disk, never a multi-GB CUDA wheel.
-#  4. The package itself, editable, with its dev extras.
+#  4. The package itself, editable, with its dev and distributed (Ray) extras: the test
+#     suite runs Ray data generation on a local cluster.
 # A second run only checks and returns in seconds.
 set -euo pipefail
 root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -50,6 +51,6 @@ if ! "$venv/bin/python" -c "import torch, sys; sys.exit(torch.__version__.split(
   echo "setup: installing $TORCH_PIN (CPU build)" >&2
   pip install "$TORCH_PIN"
 fi
-echo "setup: installing ppmrecon (editable, dev extras)" >&2
-pip install -e "$root[dev]"
+echo "setup: installing ppmrecon (editable, dev and distributed extras)" >&2
+pip install -e "$root[dev,distributed]"
 echo "$want" > "$stamp"

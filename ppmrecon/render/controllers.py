@@ -33,7 +33,7 @@ from __future__ import annotations
 import inspect
 import math
 from dataclasses import dataclass, field
-from typing import Any, Protocol, Sequence
+from typing import Any, ClassVar, Protocol, Sequence
 
 import drjit as dr
 import mitsuba as mi
@@ -250,6 +250,9 @@ class SPPMController(ChainState):
     name: str = "sppm"
     stats: str = "none"
     _r: list[mi.Float] = field(default_factory=list)
+    #: The radii of pass i depend on the initial radii and i alone (not on what was
+    #: gathered), so any range of passes can be rendered apart (Renderer.start_at).
+    schedule_only: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha < 1.0:

@@ -13,6 +13,7 @@ reported as 0 after a single pass (unknown).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import drjit as dr
 import mitsuba as mi
@@ -72,3 +73,35 @@ class PlainMean:
         self.mean = self.mean + (value - self.mean) / opaque_count(self.n)
         if evaluate:
             dr.eval(self.mean)
+
+
+def merge_welford(parts: Sequence[tuple[np.ndarray, np.ndarray, int]]) -> tuple[np.ndarray, np.ndarray, int]:
+    """Merge Welford states ``(mean, M2, n)`` of disjoint sets of samples into the state
+    of their union (Chan, Golub & LeVeque 1979, pairwise update), in float64:
+
+        n = n_a + n_b,  delta = mean_b - mean_a,
+        mean = mean_a + delta n_b / n,  M2 = M2_a + M2_b + delta^2 n_a n_b / n.
+
+    The merged mean is the sample-count-weighted mean of the parts and M2 / (n - 1) the
+    sample variance of all samples together, as one Welford pass over them would give
+    (up to rounding). Parts with n = 0 are skipped; returns zeros with n = 0 if all are."""
+    mean = m2 = None
+    n = 0
+    for mean_b, m2_b, n_b in parts:
+        if n_b <= 0:
+            continue
+        mean_b, m2_b = np.asarray(mean_b, np.float64), np.asarray(m2_b, np.float64)
+        if mean is None:
+            mean, m2, n = mean_b.copy(), m2_b.copy(), int(n_b)
+            continue
+        if mean_b.shape != mean.shape or m2_b.shape != mean.shape:
+            raise ValueError(f"Welford states of shapes {mean.shape} and {mean_b.shape} do not merge")
+        total = n + int(n_b)
+        delta = mean_b - mean
+        mean = mean + delta * (n_b / total)
+        m2 = m2 + m2_b + delta * delta * (n * n_b / total)
+        n = total
+    if mean is None:
+        shape = np.shape(parts[0][0]) if len(parts) else (0,)
+        return np.zeros(shape), np.zeros(shape), 0
+    return mean, m2, n

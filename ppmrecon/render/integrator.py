@@ -354,6 +354,35 @@ class Renderer:
         self.passes_done = i
         self.dirty = False
 
+    def start_at(self, first_pass: int) -> None:
+        """Place a fresh renderer just before pass ``first_pass`` of the run it would render
+        from pass 1, without rendering passes 1..first_pass-1, so that a range of passes of
+        one run can be rendered apart (and the ranges' Welford states merged with
+        :func:`.estimates.merge_welford`).
+
+        Pass i's random streams derive from (seed, i) alone, and the radii under a
+        schedule-only controller (SPPM) from the initial radii and i alone: the photons
+        and eye paths of pass 1 are traced (not gathered) for the initial k-NN radii, the
+        schedule is applied for passes 1..first_pass-1, and from here every pass estimate
+        is bit for bit the one of the uninterrupted run. The accumulators stay empty: the
+        estimates are means over passes first_pass.. only. Controllers that adapt the
+        radii to what each pass gathered (CPPM, FPPM, APPM) cannot start mid-run."""
+        if self.passes_done:
+            raise RuntimeError("start_at needs a renderer that has rendered no pass")
+        if first_pass < 1:
+            raise ValueError(f"first pass must be >= 1, got {first_pass}")
+        if first_pass == 1:
+            return
+        if not getattr(self.controller, "schedule_only", False):
+            raise ValueError(f"method '{self.settings.method}' adapts its radii to what every pass gathered: "
+                             "a range of its passes cannot be rendered without the passes before it")
+        s = self.settings
+        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, 1, PHOTONS), s.max_depth, s.rr_depth)
+        self.controller.start(self._initial_radii(self._eye_points(1), photon_map.p))
+        for i in range(1, first_pass):
+            self.controller.update(i, None)
+        self.passes_done = first_pass - 1
+
     def _cell_size(self, radii: list[mi.Float]) -> float:
         """Grid cell edge: a high quantile of the largest radius in use. Most gather
         points then visit at most 3x3x3 cells (2x2x2 for the smaller chains) while the

@@ -1,7 +1,10 @@
 """``ppmrecon-train``: generate training data, then train the kernel-predicting network.
 
     ppmrecon-train generate --config v2_cpu --out data/v2_cpu [--workers 2]
+    ppmrecon-train generate --config v2 --out data/v2 --ray auto [--reference-chunks 8]
     ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
+    torchrun --nproc-per-node 2 -m ppmrecon.train fit data/cpu --out runs/cpu [--ddp]
+    ppmrecon-train fit data/cpu --out runs/cpu --ddp --nproc-per-node 2   (torchrun --standalone for you)
 
 ``--config`` takes a JSON file or the name of one that ships with the package
 (``ppmrecon/data/configs/data/*.json`` for ``generate``, ``.../train/*.json`` for ``fit``).
@@ -20,7 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..cli_common import ArgumentParser, positive_float, positive_int, run_main
+from ..cli_common import ArgumentParser, nonnegative_int, positive_float, positive_int, run_main
 from ..data import CONFIGS
 from ..errors import UsageError
 
@@ -56,7 +59,20 @@ def build_parser() -> ArgumentParser:
                    help=f"data-set budgets: a JSON file or a shipped set ({', '.join(builtin_configs('data'))}; "
                         f"default: cpu; the issue-12 sets are v2 and v2_cpu)")
     g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
-    g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2)")
+    g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2; not used with --ray)")
+    g.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
+                   help="run the work items as Ray tasks instead of local processes: 'auto' joins the "
+                        "cluster this machine belongs to (or $RAY_ADDRESS), 'local' starts one here, or a "
+                        "head address such as ray://host:10001 (needs ppmrecon[distributed])")
+    g.add_argument("--ray-cpus-per-task", type=positive_int, default=1,
+                   help="CPUs (and Dr.Jit threads) per CPU task (default: 1)")
+    g.add_argument("--ray-gpus", default="auto", type=_gpus,
+                   help="GPU tasks at a time: 'auto' (one per GPU of the cluster) or a number (0: CPU only)")
+    g.add_argument("--ray-retries", type=nonnegative_int, default=2,
+                   help="retries of a failed Ray task before it is recorded as failed (default: 2)")
+    g.add_argument("--reference-chunks", type=positive_int, default=None,
+                   help="split every reference render into this many ranges of passes, rendered as separate "
+                        "items and merged exactly (overrides the config's reference_chunks)")
     g.add_argument("--scenes", type=positive_int, default=None, help="override the number of scenes")
     g.add_argument("--families", default=None,
                    help="comma-separated scene families, overriding the config's (default: the config's; "
@@ -80,8 +96,20 @@ def build_parser() -> ArgumentParser:
     f.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
     f.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
     f.add_argument("--max-seconds", type=positive_float, default=None, help="stop after the epoch that passes this")
+    f.add_argument("--ddp", action="store_true",
+                   help="train data-parallel in the process group torchrun set up (gloo on CPU, nccl with "
+                        "--device cuda); implied when torchrun starts more than one process. "
+                        "--batch is the global batch, shared out between the ranks")
+    f.add_argument("--nproc-per-node", type=positive_int, default=None, metavar="N",
+                   help="with --ddp outside torchrun: start N processes on this machine through "
+                        "`torchrun --standalone` (under torchrun: not allowed, torchrun's own option sets it)")
     f.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
+
+
+def _gpus(text: str) -> str | int:
+    """argparse type of --ray-gpus: "auto" or an integer >= 0."""
+    return text if text == "auto" else nonnegative_int(text)
 
 
 def _warn(msg: str) -> None:
@@ -103,7 +131,16 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.families:
             cfg.families = tuple(f.strip() for f in args.families.split(",") if f.strip())
             cfg.validate(f"--families {args.families}")
-        manifest = generate(cfg, args.out, workers=args.workers, quiet=args.quiet)
+        if args.reference_chunks:
+            cfg.reference_chunks = args.reference_chunks
+            cfg.validate(f"--reference-chunks {args.reference_chunks}")
+        runner = None
+        if args.ray:
+            from .raygen import RayRunner
+
+            runner = RayRunner(args.ray, cpus_per_task=args.ray_cpus_per_task, gpus=args.ray_gpus,
+                               retries=args.ray_retries)
+        manifest = generate(cfg, args.out, workers=args.workers, quiet=args.quiet, runner=runner)
         scenes = manifest["scenes"]
         inputs = [f for s in scenes for f in s.get("inputs", [])]
         agree = [s["agreement"]["relmse_normalised_trimmed"] for s in scenes if s.get("agreement")]
@@ -130,8 +167,22 @@ def main(argv: Sequence[str] | None = None) -> int:
         torch.set_num_threads(args.threads)
     if args.device == "cuda" and not torch.cuda.is_available():
         raise UsageError("--device cuda: no CUDA device is available to torch")
-    history = train(args.data, args.out, cfg, resume=args.resume, device=args.device,
-                    quiet=args.quiet, warn=_warn, max_seconds=args.max_seconds)
+    from .distributed import init, launched_by_torchrun
+
+    if args.nproc_per_node is not None:
+        if not args.ddp or launched_by_torchrun():
+            raise UsageError("--nproc-per-node: only with --ddp and outside torchrun (torchrun's own "
+                             "--nproc-per-node sets the processes there)")
+        return _torchrun_standalone(args.nproc_per_node, list(sys.argv[1:] if argv is None else argv))
+    dist = init(args.device, required=args.ddp)
+    try:
+        history = train(args.data, args.out, cfg, resume=args.resume, device=args.device,
+                        quiet=args.quiet, warn=_warn, max_seconds=args.max_seconds, dist=dist)
+    finally:
+        if dist is not None:
+            dist.close()
+    if dist is not None and not dist.main:
+        return 0
     if history and history[-1].get("val"):
         v = history[-1]["val"]
         print(f"{PROG}: {args.out}/model.pt after {history[-1]['epoch']} epochs: validation relMSE "
@@ -139,8 +190,30 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
+def _torchrun_standalone(nproc: int, argv: list[str]) -> int:
+    """Run this command again in ``nproc`` processes of a one-machine torchrun group;
+    returns torchrun's exit status."""
+    import subprocess
+
+    rest, skip = [], False
+    for a in argv:  # the same arguments less --nproc-per-node (torchrun takes it)
+        if skip:
+            skip = False
+        elif a == "--nproc-per-node":
+            skip = True
+        elif not a.startswith("--nproc-per-node="):
+            rest.append(a)
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={nproc}",
+           "-m", "ppmrecon.train", *rest]
+    return subprocess.run(cmd).returncode
+
+
 def entry() -> None:
-    raise SystemExit(run_main(PROG, main))
+    code = run_main(PROG, main)
+    distributed = sys.modules.get("ppmrecon.train.distributed")
+    if distributed is not None and distributed.joined:
+        distributed.exit_process(code)
+    raise SystemExit(code)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -25,9 +25,23 @@ smallest bandwidth) shows photon and A-path fireflies, ~z^4 (hit point B, the la
 bandwidth) mostly eye-path fireflies that every ~z^j shares.
 
 Scenes are split into train and validation as whole scenes (every
-``validation_every``-th scene is validation). Work items (one input seed, or one
-reference render) run in parallel worker processes; finished items (files present and
-valid) are skipped on a rerun, so an interrupted generation resumes where it stopped.
+``validation_every``-th scene is validation). Work items (one input seed, one reference
+render, or one chunk of a reference's passes) run in parallel: local worker processes,
+or Ray tasks on a cluster (:mod:`.raygen`, ``--ray``), which give the same files and
+manifest. Finished items (files present and valid) are skipped on a rerun, so an
+interrupted generation resumes where it stopped; an item whose worker raised (or, on
+Ray, failed all its retries) is recorded as failed in the manifest's ``items`` and the
+run ends with an error naming it, never dropped silently.
+
+With ``reference_chunks`` = K > 1 each reference render is split into K ranges of
+passes (:func:`reference_chunk_bounds`), rendered as separate items, each of which
+stores its Welford state (per-pixel mean and M2 over its passes); once all K exist they
+are merged (:func:`..render.estimates.merge_welford`) into the reference. References
+are SPPM, whose radius at pass i depends only on the initial radii and i, and pass i's
+random numbers only on (seed, i): a chunk renders exactly the passes of the one long
+run (:meth:`..render.integrator.Renderer.start_at`), so the merged mean *is* the
+single run's estimate, up to float32 rounding of the running mean (not a mean of
+independent shorter runs, which would carry the larger bias of the shorter run).
 The manifest records scene parameters, budgets, file names and per-item wall times.
 Manifest version 2 adds the reference halves, their agreement, firefly counts and the
 ``items`` table; readers take version 1 too (:mod:`.dataset` needs only
@@ -43,18 +57,20 @@ import os
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator, Protocol
 
 import numpy as np
 
 from .. import buffers as B
 from ..cli_common import Progress
-from ..errors import UsageError
+from ..errors import PpmreconError, UsageError
 from ..fileio import load_json_config, read_json, write_json
 from ..metrics import firefly_mask, relmse, relmse_trimmed
 from .scenegen import FAMILIES, LEGACY_FAMILIES, RADIANCE_LOG10, family_of, sample_params
 
 MANIFEST = "manifest.json"
+#: Chunk files: the Welford state of a range of a reference's passes (see module doc).
+CHUNK_FORMAT = "ppmrecon-reference-chunk"
 MANIFEST_VERSION = 2
 REFERENCE = "reference.exr"
 REFERENCE_HALVES = ("reference_a.exr", "reference_b.exr")
@@ -64,6 +80,8 @@ REFERENCE_SEED_BASE = (10_000, 1_000_000)
 AGREEMENT_TRIM = 1e-3
 #: Values of the keys added in manifest version 2 that make exactly a version-1 data set.
 LEGACY_CONFIG: dict[str, Any] = {"families": list(LEGACY_FAMILIES), "radiance_log10": None, "references": 1}
+#: Config keys added later within manifest version 2, with the value data made before had.
+LATER_DEFAULTS: dict[str, Any] = {"reference_chunks": 1}
 
 
 @dataclass
@@ -87,6 +105,9 @@ class DataConfig:
     radiance_log10: tuple[float, float] | None = RADIANCE_LOG10
     #: Independent reference renders per scene: 2 (mean + agreement) or 1 (version 1).
     references: int = 2
+    #: Ranges of passes each reference render is split into (separate work items, merged
+    #: exactly; see the module docstring). 1: one item per reference render.
+    reference_chunks: int = 1
 
     def __post_init__(self) -> None:
         # JSON gives lists; the manifest comparison and hashing want tuples
@@ -115,6 +136,9 @@ class DataConfig:
             raise UsageError(f"{where}: seeds needs at least two different seeds")
         if self.references not in (1, 2):
             raise UsageError(f"{where}: references must be 1 or 2, got {self.references}")
+        if not 1 <= self.reference_chunks <= self.reference_passes:
+            raise UsageError(f"{where}: reference_chunks must lie in 1..reference_passes "
+                             f"({self.reference_passes}), got {self.reference_chunks}")
         # The reference (all its renders together) gets at least 16x the photons of the
         # largest input: passes x photons per pass.
         need = 16 * max(self.input_passes) * self.photons
@@ -150,6 +174,47 @@ def reference_files(cfg: DataConfig) -> tuple[str, ...]:
     return REFERENCE_HALVES if cfg.references == 2 else (REFERENCE,)
 
 
+def reference_chunk_bounds(passes: int, chunks: int) -> list[tuple[int, int]]:
+    """(first, last) pass, 1-based and inclusive, of each of ``chunks`` ranges that
+    split passes 1..``passes`` as evenly as possible."""
+    return [(c * passes // chunks + 1, (c + 1) * passes // chunks) for c in range(chunks)]
+
+
+def chunk_name(reference: str, chunk: int, chunks: int) -> str:
+    """File of chunk ``chunk`` (0-based) of reference render ``reference``."""
+    return f"{Path(reference).stem}.chunk{chunk + 1:02d}of{chunks:02d}.npz"
+
+
+def write_chunk(path: str | os.PathLike, mean: np.ndarray, m2: np.ndarray, meta: dict[str, Any]) -> None:
+    """A chunk's Welford state (mean, M2: (3, pixels)) and its JSON record, atomically."""
+    from ..render.state import write_state
+
+    write_state(path, {"format": CHUNK_FORMAT, **_as_json(meta)}, {"mean": mean, "m2": m2})
+
+
+def read_chunk(path: str | os.PathLike) -> tuple[dict[str, Any], np.ndarray, np.ndarray] | None:
+    """(record, mean, M2) of a chunk file, or None if it is absent, cut or not a chunk."""
+    from ..render.state import META_KEY
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(bytes(z[META_KEY]).decode("utf-8"))
+            mean, m2 = z["mean"], z["m2"]
+    except Exception:
+        return None
+    if not isinstance(meta, dict) or meta.get("format") != CHUNK_FORMAT or mean.shape != m2.shape:
+        return None
+    if not (np.isfinite(mean).all() and np.isfinite(m2).all()):
+        return None
+    return meta, mean, m2
+
+
+def _chunk_valid(path: Path, first: int, last: int, seed: int) -> bool:
+    got = read_chunk(path)
+    return got is not None and (got[0].get("first_pass"), got[0].get("last_pass"), got[0].get("count"),
+                                got[0].get("seed")) == (first, last, last - first + 1, seed)
+
+
 def plan(cfg: DataConfig) -> list[dict[str, Any]]:
     """The scenes of a data set: id, family, split, params (no rendering)."""
     scenes = []
@@ -174,12 +239,27 @@ def _valid(path: Path, buffer: bool) -> bool:
         return False
 
 
-def _work_item(job: dict[str, Any]) -> dict[str, Any]:
-    """Render one item in a worker process: all snapshots of one input seed, or one
-    reference render."""
+def _job_ids(job: dict[str, Any]) -> dict[str, Any]:
+    """What names a work item in its result (scene, kind, input seed, half, chunk)."""
+    return {"id": job["id"], "kind": job["kind"], "seed": job.get("seed"), "half": job.get("half"),
+            "chunk": job.get("chunk")}
+
+
+def describe_item(res: dict[str, Any]) -> str:
+    """A work item in words: scene id and item key, e.g. ``0001_glossy reference_a_c02``."""
+    return f"{res['id']} {_item_key(res['kind'], res.get('seed'), res.get('half'), res.get('chunk'))}"
+
+
+def work_item(job: dict[str, Any]) -> dict[str, Any]:
+    """Render one item (in a worker process or Ray task) into ``job["folder"]``: all
+    snapshots of one input seed, one reference render, or one chunk of a reference's
+    passes. Returns the item's files and times; raises on failure. Meant for a worker
+    process: ``job["threads"]`` sets Dr.Jit's thread count of the whole process (after
+    which Mitsuba 3.9's ``Bitmap.write`` of an EXR deadlocks, so not in a process that
+    goes on using Mitsuba's image I/O)."""
     from ..backend import choose_variant
 
-    choose_variant()
+    variant = choose_variant(job.get("variant"))
     import drjit as dr
     import mitsuba as mi
 
@@ -196,15 +276,26 @@ def _work_item(job: dict[str, Any]) -> dict[str, Any]:
     name = f"generated:{job['id']}"
     files: list[dict[str, Any]] = []
     if job["kind"] == "reference":
-        half = job["half"]
+        half, chunk = job["half"], job.get("chunk")
         seed = REFERENCE_SEED_BASE[half] + job["scene_seed"]
-        r = Renderer(scene, RenderSettings(passes=cfg.reference_passes, photons=cfg.reference_photons,
+        first, last = ((1, cfg.reference_passes) if chunk is None
+                       else reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)[chunk])
+        r = Renderer(scene, RenderSettings(passes=last, photons=cfg.reference_photons,
                                            seed=seed, layout="single", max_depth=cfg.max_depth), scene_name=name)
+        r.start_at(first)
         res = r.run()
-        fname = reference_files(cfg)[half]
-        B.write_rgb(folder / fname, res.estimates[0], header=res.header)
-        files.append({"file": fname, "passes": res.passes, "photons": cfg.reference_photons,
-                      "seed": seed, "seconds": res.seconds})
+        entry = {"photons": cfg.reference_photons, "seed": seed, "seconds": res.seconds}
+        if chunk is None:
+            fname = reference_files(cfg)[half]
+            B.write_rgb(folder / fname, res.estimates[0], header=res.header)
+            files.append({"file": fname, "passes": res.passes, **entry})
+        else:
+            fname = chunk_name(reference_files(cfg)[half], chunk, cfg.reference_chunks)
+            acc = r.means[0]
+            write_chunk(folder / fname, np.array(acc.mean), np.array(acc.m2),
+                        {"first_pass": first, "last_pass": last, "count": acc.n, "seed": seed,
+                         "width": r.width, "height": r.height, "header": res.header})
+            files.append({"file": fname, "first_pass": first, "last_pass": last, "passes": acc.n, **entry})
         render_seconds = res.seconds
     else:
         seed = job["seed"]
@@ -222,8 +313,23 @@ def _work_item(job: dict[str, Any]) -> dict[str, Any]:
                               "seed": seed, "photons": cfg.photons, "seconds": rr.seconds})
 
         render_seconds = r.run(on_pass).seconds
-    return {"id": job["id"], "kind": job["kind"], "seed": job.get("seed"), "half": job.get("half"),
-            "files": files, "wall_seconds": time.perf_counter() - t0, "render_seconds": render_seconds}
+    return {**_job_ids(job), "files": files, "wall_seconds": time.perf_counter() - t0,
+            "render_seconds": render_seconds, "variant": variant}
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its type and the first line of its message."""
+    text = str(exc).strip()
+    return f"{type(exc).__name__}: {text.splitlines()[0]}" if text else type(exc).__name__
+
+
+def _local_item(job: dict[str, Any]) -> dict[str, Any]:
+    """:func:`work_item` in a local pool process; a failure comes back as a result with
+    ``error`` (recorded in the manifest) instead of ending the whole pool."""
+    try:
+        return work_item(job)
+    except Exception as exc:
+        return {**_job_ids(job), "error": one_line(exc), "attempts": 1}
 
 
 def load_manifest(root: str | os.PathLike) -> dict[str, Any]:
@@ -238,13 +344,48 @@ def load_manifest(root: str | os.PathLike) -> dict[str, Any]:
 def stored_config(manifest: dict[str, Any]) -> dict[str, Any]:
     """The manifest's data config with every key a version-1 manifest lacks set to the
     value that made version-1 data (so such a data set compares equal to its config)."""
-    config = dict(LEGACY_CONFIG)
+    config = {**LEGACY_CONFIG, **LATER_DEFAULTS}
     config.update(manifest.get("config", {}))
     return _as_json(config)
 
 
-def _item_key(kind: str, seed: int | None = None, half: int | None = None) -> str:
-    return f"inputs_s{seed}" if kind == "inputs" else f"reference_{'ab'[half or 0]}"
+def _item_key(kind: str, seed: int | None = None, half: int | None = None, chunk: int | None = None) -> str:
+    if kind == "inputs":
+        return f"inputs_s{seed}"
+    return f"reference_{'ab'[half or 0]}" + ("" if chunk is None else f"_c{chunk + 1:02d}")
+
+
+def _merge_chunks(root: Path, s: dict[str, Any], cfg: DataConfig) -> bool:
+    """Merge the chunks of every reference render whose chunks are all listed and valid
+    into the reference file (sample-count-weighted Welford merge, i.e. the mean over all
+    its passes); returns whether a reference was written."""
+    from ..render.estimates import merge_welford
+
+    folder = root / s["id"]
+    listed = {f["file"] for f in s.get("references", [])}
+    entries = {f["file"]: f for f in s.get("chunks", [])}
+    changed = False
+    for name in reference_files(cfg):
+        names = [chunk_name(name, c, cfg.reference_chunks) for c in range(cfg.reference_chunks)]
+        if name in listed or not all(n in entries for n in names):
+            continue
+        parts = [read_chunk(folder / n) for n in names]
+        if any(p is None for p in parts):
+            continue  # found and redone by the next rerun's validity check
+        mean, _, n = merge_welford([(p[1], p[2], int(p[0]["count"])) for p in parts])
+        meta = parts[-1][0]
+        header = dict(meta["header"])
+        seconds = sum(float(p[0]["header"].get(B.H_SECONDS, 0.0)) for p in parts)
+        header.update({B.H_PASSES: n, B.H_SECONDS: seconds, "ppmrecon.data.chunks": cfg.reference_chunks})
+        for key in [k for k in header if k.startswith("ppmrecon.nonfinite")]:
+            header[key] = sum(int(p[0]["header"].get(key, 0)) for p in parts)
+        rgb = mean.reshape(3, meta["height"], meta["width"]).transpose(1, 2, 0).astype(np.float32)
+        B.write_rgb(folder / name, rgb, header=header)
+        s["references"] = sorted(s.get("references", []) + [
+            {"file": name, "passes": n, "photons": cfg.reference_photons, "seed": meta["seed"],
+             "seconds": seconds, "chunks": cfg.reference_chunks}], key=lambda f: f["file"])
+        changed = True
+    return changed
 
 
 def _finish_scene(root: Path, s: dict[str, Any], cfg: DataConfig) -> bool:
@@ -252,11 +393,11 @@ def _finish_scene(root: Path, s: dict[str, Any], cfg: DataConfig) -> bool:
     (two halves), then count fireflies in every input that lacks the count. Returns
     whether anything changed; cheap, so it runs after every item and on every rerun."""
     folder = root / s["id"]
+    changed = cfg.reference_chunks > 1 and _merge_chunks(root, s, cfg)
     refs = {f["file"]: f for f in s.get("references", [])}
     names = reference_files(cfg)
     if not all(n in refs for n in names):
-        return False
-    changed = False
+        return changed
     if cfg.references == 2 and not (s.get("reference") and s.get("agreement") and _valid(folder / REFERENCE, False)):
         (a, header), (b, _) = (B.read_rgb(folder / n) for n in names)
         header = dict(header)
@@ -299,8 +440,68 @@ def _finish_scene(root: Path, s: dict[str, Any], cfg: DataConfig) -> bool:
     return changed
 
 
-def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: bool = False) -> dict[str, Any]:
-    """Generate (or complete) the data set ``out`` for ``cfg``; returns the manifest."""
+class GenerationError(PpmreconError):
+    """Work items failed (recorded in the manifest); a rerun retries them."""
+
+    exit_code = 1
+
+
+class Runner(Protocol):
+    """Where work items run: :class:`LocalRunner` or :class:`.raygen.RayRunner`."""
+
+    #: Short name for the progress line.
+    label: str
+    #: Dr.Jit threads per item.
+    threads: int
+
+    def run(self, jobs: list[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        """Yield one result per job, in the order they finish: :func:`work_item`'s return
+        value with its files in the job's ``folder``, or ``_job_ids`` plus ``error``."""
+        ...
+
+
+class LocalRunner:
+    """A pool of ``workers`` spawned processes on this machine."""
+
+    def __init__(self, workers: int = 1, threads: int | None = None):
+        self.workers = max(1, workers)
+        self.label = f"{self.workers} local worker{'s' if self.workers > 1 else ''}"
+        # Dr.Jit threads: by default the cores shared out between the workers
+        self.threads = threads or max(1, (os.cpu_count() or 1) // self.workers)
+
+    def run(self, jobs: list[dict[str, Any]]) -> Iterator[dict[str, Any]]:
+        ctx = mp.get_context("spawn")  # Dr.Jit and torch do not survive fork
+        with ctx.Pool(processes=self.workers) as pool:
+            yield from pool.imap_unordered(_local_item, jobs)
+
+
+def _record(s: dict[str, Any], res: dict[str, Any], cfg: DataConfig) -> None:
+    """Fold one item's result into its scene's manifest entry."""
+    key = _item_key(res["kind"], res.get("seed"), res.get("half"), res.get("chunk"))
+    if "error" in res:
+        s["items"][key] = {"failed": res["error"], "attempts": res.get("attempts")}
+        return
+    if res["kind"] == "reference" and res.get("chunk") is not None:
+        s["chunks"] = sorted(s["chunks"] + res["files"], key=lambda f: f["file"])
+        budget = {"passes": res["files"][0]["passes"], "photons": cfg.reference_photons}
+    elif res["kind"] == "reference":
+        s["references"] = sorted(s["references"] + res["files"], key=lambda f: f["file"])
+        budget = {"passes": cfg.reference_passes, "photons": cfg.reference_photons}
+    else:
+        s["inputs"] = sorted(s["inputs"] + res["files"], key=lambda f: (f["seed"], f["passes"]))
+        budget = {"passes": max(cfg.input_passes), "photons": cfg.photons}
+    s["items"][key] = {**budget, "render_seconds": res["render_seconds"], "wall_seconds": res["wall_seconds"],
+                       "variant": res.get("variant")}
+    s["seconds"] = s.get("seconds", 0.0) + res["wall_seconds"]
+
+
+def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: bool = False,
+             runner: Runner | None = None) -> dict[str, Any]:
+    """Generate (or complete) the data set ``out`` for ``cfg``; returns the manifest.
+
+    Items run on ``runner`` (default: a local pool of ``workers`` processes). Raises
+    :class:`GenerationError` naming the failed items after all others are done."""
+    runner = runner or LocalRunner(workers)
     cfg.validate()
     root = Path(out)
     root.mkdir(parents=True, exist_ok=True)
@@ -316,21 +517,22 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
         done = {s["id"]: s for s in old["scenes"]}
         for s in scenes:
             prev = done.get(s["id"], {})
-            for key in ("inputs", "reference", "references", "agreement", "items", "seconds"):
+            for key in ("inputs", "reference", "references", "chunks", "agreement", "items", "seconds"):
                 if key in prev:
                     s[key] = prev[key]
             if cfg.references == 1 and "reference" in prev and "references" not in prev:
                 s["references"] = [prev["reference"]]  # a version-1 scene
 
     jobs = []
-    threads = max(1, (os.cpu_count() or 1) // max(1, workers))
     for s in scenes:
         folder = root / s["id"]
         s.setdefault("inputs", [])
         s.setdefault("references", [])
         s.setdefault("items", {})
+        if cfg.reference_chunks > 1:
+            s.setdefault("chunks", [])
         common = {"id": s["id"], "scene_seed": s["seed"], "params": s["params"], "folder": str(folder),
-                  "config": asdict(cfg), "threads": threads}
+                  "config": asdict(cfg), "threads": runner.threads}
         for seed in cfg.seeds:
             wanted = [folder / input_name(n, seed) for n in cfg.input_passes]
             if all(_valid(p, True) for p in wanted) and all(
@@ -344,32 +546,42 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
             s["references"] = [f for f in s["references"] if f["file"] != name]
             s.pop("reference", None)  # the mean (or the single reference) is redone
             s.pop("agreement", None)
-            jobs.append({"kind": "reference", "half": half, **common})
+            if cfg.reference_chunks == 1:
+                jobs.append({"kind": "reference", "half": half, **common})
+                continue
+            seed = REFERENCE_SEED_BASE[half] + s["seed"]
+            bounds = reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)
+            for c, (first, last) in enumerate(bounds):
+                cname = chunk_name(name, c, cfg.reference_chunks)
+                if _chunk_valid(folder / cname, first, last, seed) and any(f["file"] == cname for f in s["chunks"]):
+                    continue
+                s["chunks"] = [f for f in s["chunks"] if f["file"] != cname]
+                jobs.append({"kind": "reference", "half": half, "chunk": c, **common})
         _finish_scene(root, s, cfg)
     write_json(mpath, manifest)
 
     by_id = {s["id"]: s for s in scenes}
-    progress = Progress(f"ppmrecon-train generate {root}", total=len(jobs), quiet=quiet)
+    progress = Progress(f"ppmrecon-train generate {root} ({runner.label})", total=len(jobs), quiet=quiet)
     progress.update(0, force=True)
     t0 = time.perf_counter()
+    failed: list[dict[str, Any]] = []
     if jobs:
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(processes=max(1, workers)) as pool:
-            for k, res in enumerate(pool.imap_unordered(_work_item, jobs), 1):
-                s = by_id[res["id"]]
-                if res["kind"] == "reference":
-                    s["references"] = sorted(s["references"] + res["files"], key=lambda f: f["file"])
-                    budget = {"passes": cfg.reference_passes, "photons": cfg.reference_photons}
-                else:
-                    s["inputs"] = sorted(s["inputs"] + res["files"], key=lambda f: (f["seed"], f["passes"]))
-                    budget = {"passes": max(cfg.input_passes), "photons": cfg.photons}
-                s["items"][_item_key(res["kind"], res["seed"], res["half"])] = {
-                    **budget, "render_seconds": res["render_seconds"], "wall_seconds": res["wall_seconds"]}
-                s["seconds"] = s.get("seconds", 0.0) + res["wall_seconds"]
+        for k, res in enumerate(runner.run(jobs), 1):
+            s = by_id[res["id"]]
+            _record(s, res, cfg)
+            if "error" in res:
+                failed.append(res)
+            else:
                 _finish_scene(root, s, cfg)
-                write_json(mpath, manifest)
-                progress.update(k, force=True, scene=res["id"])
+            write_json(mpath, manifest)
+            progress.update(k, force=True, scene=res["id"], failed=len(failed))
     progress.close()
     manifest["generation_seconds"] = manifest.get("generation_seconds", 0.0) + (time.perf_counter() - t0)
     write_json(mpath, manifest)
+    if failed:
+        first = failed[0]
+        more = f"; {len(failed) - 1} more failed (see 'items' in {mpath})" if len(failed) > 1 else ""
+        raise GenerationError(f"{mpath}: work item {describe_item(first)} failed after "
+                              f"{first.get('attempts') or 1} attempt(s): {first['error']}{more}; "
+                              "rerun the same command to retry")
     return manifest

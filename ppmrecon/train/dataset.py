@@ -8,6 +8,13 @@ normalisations must not see a crop), then patches are cut and augmented with one
 eight flips/rotations, identically for every layer (normals turn with the image, see
 :mod:`.augment`).
 
+For data-parallel training (:mod:`.distributed`) each rank loads one shard: the usable
+candidates (a split's listed inputs, in the order a single process loads them) with
+index ``k % world == rank``. :class:`PatchSampler` then draws every global batch from
+the *whole* data set's catalogue (sizes only) with the same random stream on every
+rank, and each rank cuts the patches of the samples it holds: together the ranks cut
+exactly the batch one process would.
+
 A missing, corrupt or partial item (an unreadable EXR, NaN/Inf, a size that differs
 from the reference, a scene without reference, inputs the manifest promised but that
 are absent) is reported by name through ``warn`` and skipped, never trained on.
@@ -44,30 +51,48 @@ class Sample:
     y: torch.Tensor          # (3, H, W) ~y (guarded when the guard is on)
     z: torch.Tensor          # (4, 3, H, W) ~z^1..~z^4 (likewise)
     reference: torch.Tensor  # (3, H, W)
+    #: Position among the split's candidates (the shard key; see the module docstring).
+    index: int = -1
 
 
 def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = FeatureConfig(),
                passes: int | None = None, warn: Warn | None = None,
-               guard: GuardConfig = GuardConfig(), max_disagreement: float | None = None) -> list[Sample]:
+               guard: GuardConfig = GuardConfig(), max_disagreement: float | None = None,
+               shard: tuple[int, int] | None = None) -> list[Sample]:
     """All usable samples of ``split`` ("train" or "val"), optionally of one pass count.
 
     ``max_disagreement``: skip scenes whose two reference halves disagree by more than
     this trimmed relMSE (manifest ``agreement.relmse_trimmed``): a reference that far from
     converged teaches its own noise.
+    ``shard`` = (rank, world): load only the candidates with index % world == rank (the
+    manifest-only warnings come from rank 0 alone).
     """
     root = Path(root)
     warn = warn or (lambda msg: None)
     manifest = load_manifest(root)
     config = manifest.get("config", {})
+    rank, world = shard or (0, 1)
+    main_warn = warn if rank == 0 else (lambda msg: None)
     samples: list[Sample] = []
+    candidates = 0
     for scene in manifest.get("scenes", []):
         if scene.get("split") != split:
             continue
         folder = root / scene["id"]
         disagreement = (scene.get("agreement") or {}).get("relmse_trimmed")
         if max_disagreement is not None and disagreement is not None and disagreement > max_disagreement:
-            warn(f"skipping scene {scene['id']}: its two references disagree by trimmed relMSE "
-                 f"{disagreement:.3g} > {max_disagreement:g} (not converged)")
+            main_warn(f"skipping scene {scene['id']}: its two references disagree by trimmed relMSE "
+                      f"{disagreement:.3g} > {max_disagreement:g} (not converged)")
+            continue
+        promised = {input_name(n, s) for n in config.get("input_passes", []) for s in config.get("seeds", [])}
+        listed = {f["file"]: f for f in scene.get("inputs", [])}
+        for name in sorted(promised - set(listed)):
+            main_warn(f"skipping {folder / name}: partial item (not in the manifest; rerun `ppmrecon-train generate`)")
+        entries = [(name, entry) for name, entry in sorted(listed.items())
+                   if passes is None or entry.get("passes") == passes]
+        mine = [(k, name, entry) for k, (name, entry) in enumerate(entries, candidates) if k % world == rank]
+        candidates += len(entries)
+        if not mine:
             continue
         try:
             ref_np, _ = B.read_rgb(folder / REFERENCE)
@@ -75,13 +100,7 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
             warn(f"skipping scene {scene['id']}: reference unusable ({exc})")
             continue
         reference = torch.from_numpy(ref_np).permute(2, 0, 1).contiguous()
-        promised = {input_name(n, s) for n in config.get("input_passes", []) for s in config.get("seeds", [])}
-        listed = {f["file"]: f for f in scene.get("inputs", [])}
-        for name in sorted(promised - set(listed)):
-            warn(f"skipping {folder / name}: partial item (not in the manifest; rerun `ppmrecon-train generate`)")
-        for name, entry in sorted(listed.items()):
-            if passes is not None and entry.get("passes") != passes:
-                continue
+        for index, name, entry in mine:
             path = folder / name
             try:
                 buf = B.read_buffers(path)
@@ -97,43 +116,78 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
                 warn(f"skipping {path}: {exc}")
                 continue
             samples.append(Sample(str(path), scene["id"], int(entry.get("passes", 0)),
-                                  inputs.features[0], inputs.y[0], inputs.z[0], reference))
+                                  inputs.features[0], inputs.y[0], inputs.z[0], reference, index))
     return samples
 
 
+#: One patch of a batch: (sample position in the catalogue, y0, x0, turns, flip, size).
+Row = tuple[int, int, int, int, bool, int]
+
+
 class PatchSampler:
-    """Random augmented patches from a list of samples (deterministic given ``seed``)."""
+    """Random augmented patches from a list of samples (deterministic given ``seed``).
+
+    ``catalog``: the (height, width) of every sample of the whole training set, in the
+    single-process order, when ``samples`` hold only this rank's shard; each sample's
+    place in it is given by ``positions`` (same order as ``samples``). Without them the
+    samples are the whole set. :meth:`plan` draws a global batch from the catalogue
+    (identically on every rank), :meth:`cut` makes the patches of the rows a rank
+    holds; :meth:`batch` is both, for one process."""
 
     def __init__(self, samples: list[Sample], patch: int = 64, features: FeatureConfig = FeatureConfig(),
-                 augment: bool = True, seed: int = 0):
-        if not samples:
+                 augment: bool = True, seed: int = 0, catalog: list[tuple[int, int]] | None = None,
+                 positions: list[int] | None = None):
+        if catalog is None:
+            catalog = [tuple(s.y.shape[-2:]) for s in samples]
+            positions = list(range(len(samples)))
+        if not catalog:
             raise UsageError("no usable training samples (see the warnings above)")
         self.samples = samples
+        self.catalog = catalog
+        self.local = dict(zip(positions or [], samples))
         self.patch = patch
         self.augment = augment
         self.normal = features.slices()["normal"]
         self.rng = np.random.default_rng(seed)
 
-    def _one(self, s: Sample) -> tuple[torch.Tensor, ...]:
-        _, h, w = s.y.shape
-        p = min(self.patch, h, w)
-        y0 = int(self.rng.integers(0, h - p + 1))
-        x0 = int(self.rng.integers(0, w - p + 1))
-        crop = (..., slice(y0, y0 + p), slice(x0, x0 + p))
+    def plan(self, size: int) -> list[Row]:
+        """Draw the patches of one global batch (the random stream is consumed exactly as
+        by earlier versions' ``batch``: picks, then per pick its crop and augmentation)."""
+        picks = self.rng.integers(0, len(self.catalog), size)
+        rows = []
+        for g in picks:
+            h, w = self.catalog[int(g)]
+            p = min(self.patch, h, w)
+            y0 = int(self.rng.integers(0, h - p + 1))
+            x0 = int(self.rng.integers(0, w - p + 1))
+            turns, flip = (int(self.rng.integers(0, 4)), bool(self.rng.integers(0, 2))) if self.augment else (0, False)
+            rows.append((int(g), y0, x0, turns, flip, p))
+        # mixed image sizes smaller than the patch: every patch is cut to the smallest
+        p = min(r[5] for r in rows)
+        return [r[:5] + (p,) for r in rows]
+
+    def mine(self, rows: list[Row]) -> list[Row]:
+        """The rows whose sample this rank holds, in batch order."""
+        return [r for r in rows if r[0] in self.local]
+
+    def _one(self, row: Row) -> tuple[torch.Tensor, ...]:
+        g, y0, x0, turns, flip, p = row
+        s = self.local[g]
+        full = min(self.patch, *s.y.shape[-2:])
+        crop = (..., slice(y0, y0 + full), slice(x0, x0 + full))
         feats, y, z, ref = s.features[crop], s.y[crop], s.z[crop], s.reference[crop]
         if self.augment:
-            turns, flip = int(self.rng.integers(0, 4)), bool(self.rng.integers(0, 2))
             feats, y, z, ref = (transform_image(t, turns, flip) for t in (feats, y, z, ref))
             feats = feats.clone()
             feats[self.normal] = transform_normals(feats[self.normal], turns, flip)
-        return feats, y, z, ref
+        return tuple(t[..., :p, :p] for t in (feats, y, z, ref))
+
+    def cut(self, rows: list[Row]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """(features (B, C, P, P), y (B, 3, P, P), z (B, 4, 3, P, P), reference (B, 3, P, P))
+        of ``rows`` (all held by this rank)."""
+        parts = [self._one(r) for r in rows]
+        return tuple(torch.stack(list(x)) for x in zip(*parts))  # type: ignore[return-value]
 
     def batch(self, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
-        """(features (B, C, P, P), y (B, 3, P, P), z (B, 4, 3, P, P), reference (B, 3, P, P))."""
-        picks = self.rng.integers(0, len(self.samples), size)
-        parts = [self._one(self.samples[int(i)]) for i in picks]
-        sizes = {t[1].shape[-1] for t in parts} | {t[1].shape[-2] for t in parts}
-        if len(sizes) != 1:  # mixed image sizes smaller than the patch: use the smallest
-            p = min(sizes)
-            parts = [tuple(t[..., :p, :p] for t in part) for part in parts]
-        return tuple(torch.stack(list(x)) for x in zip(*parts))  # type: ignore[return-value]
+        """A batch of ``size`` patches (one process holding every sample)."""
+        return self.cut(self.plan(size))
