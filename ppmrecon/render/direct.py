@@ -63,12 +63,10 @@ def _mis(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
 
 
 def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
-                 defer_counts: bool = False, evaluate: bool = True) -> tuple[mi.Color3f, int | mi.UInt32]:
+                 defer_counts: bool = False) -> tuple[mi.Color3f, int | mi.UInt32]:
     """L_direct at every gather point in ``active`` (0 elsewhere), one emitter sample and
     one BSDF sample each, random stream ``seed``; and how many non-finite samples were
-    dropped (``defer_counts``: as a one-element device value, no host read here).
-    ``evaluate=False``: both stay unevaluated (the count per lane) for the kernel of the
-    caller that consumes them."""
+    dropped (``defer_counts``: as a one-element device value, no host read here)."""
     n = dr.width(gp.found)
     rng = make_rng(n, seed)
     si = gp.si
@@ -99,8 +97,6 @@ def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
 
     total = l_em + l_b
     finite = dr.all(dr.isfinite(total))
-    if not evaluate:
-        return dr.select(finite, total, 0.0), dr.select(active & ~finite, mi.UInt32(1), mi.UInt32(0))
     dr.eval(total, finite)
     bad = dr.count(active & ~finite) if n else 0
     bad = int(bad[0]) if n and not defer_counts else bad

@@ -233,8 +233,7 @@ class Renderer:
 
     def _direct(self, i: int, points: list[GatherPoints]) -> tuple[list[tuple[mi.Bool, mi.Color3f] | None], int | mi.UInt32]:
         """Per eye hit point: (where direct light is estimated apart, its estimate); and
-        the non-finite samples dropped per lane. Unevaluated: the pass's gather kernel
-        computes them (no separate launch, no write and re-read of the estimate)."""
+        the non-finite samples dropped."""
         s = self.settings
         if s.direct == "none":
             return [None] * len(points), 0
@@ -242,7 +241,7 @@ class Renderer:
         for stream, p in zip(self._eye_streams(), points):
             use = uses_direct(p, s.direct, s.max_depth)
             light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream),
-                                      evaluate=False)
+                                      defer_counts=True)
             dropped += bad
             out.append((use, light))
         return out, dropped
@@ -287,7 +286,7 @@ class Renderer:
         t1 = clock()
         points = self._eye_points(i)
         dropped["eye"] += sum(p.nonfinite for p in points)
-        direct, direct_dropped = self._direct(i, points)
+        direct, dropped["direct"] = self._direct(i, points)
         t2 = clock()
         self.dirty = True
         if i == 1:
@@ -334,15 +333,13 @@ class Renderer:
             self.albedo.add(p.albedo, evaluate=False)
             self.normal.add(p.normal, evaluate=False)
             self.depth.add(p.depth, evaluate=False)
-        dr.eval(n_bad, n_dropped, direct_dropped, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean,
+        dr.eval(n_bad, n_dropped, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean,
                 self.depth.mean, [(res.count, res.pending) for _, res in results])
         for _, res in results:
             res.nonfinite = 0  # counted in n_dropped
         if self.n_pixels:
             dropped["estimate"] += dr.sum(n_bad)
             dropped["gather"] += dr.sum(n_dropped)
-            if not isinstance(direct_dropped, int):
-                dropped["direct"] += dr.sum(direct_dropped)
         t4 = clock()
         self.controller.update(i, results)
         t5 = clock()
