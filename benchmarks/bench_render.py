@@ -256,15 +256,26 @@ def report_lines(report: dict, before: dict | None) -> list[str]:
               "round trip;",
               "* photons: one packet store per bounce into uninitialised buffers (only the valid flags are "
               "cleared), one packed copy of the segments;",
-              "* eye: gather points keep the preliminary intersection, each kernel recomputes the surface "
-              "interaction; update: every accumulator in one kernel; the non-finite counts stay on the "
-              "device and are read once per pass.",
+              "* eye: gather points keep the preliminary intersection of the eye walk's own trace (no "
+              "second trace of the last ray), each kernel recomputes the surface interaction;",
+              "* update: every accumulator in one kernel, and that kernel is the gather's (the search "
+              "loops are evaluated with the Welford updates that consume their sums: no write and re-read "
+              "of each chain's flux), so the gather column includes the accumulators and update is the "
+              "bandwidth controller alone; the non-finite counts stay on the device and are read once "
+              "per pass.",
               "",
               "Not done: the cell size still comes from a host-side quantile of the radii (one read of the "
-              "largest radii per pass) and the photon trace reads its segment sizes (`dr.compress`). "
+              "largest radii per pass, ~2 ms) and the photon trace reads its segment sizes (`dr.compress`). "
               "Tried and dropped, no gain in CPU time on this machine: gather points in 8x8 pixel tiles "
-              "(coherent packets, but the permutation cost as much), and the eye paths and their "
-              "direct light fused into one kernel."]
+              "(coherent packets, but the permutation cost as much); the eye paths and their "
+              "direct light fused into one kernel; the direct light computed in the gather kernel "
+              "(~9% slower in kernel time); one accumulator kernel per hit point instead of both search "
+              "loops in one; a symbolic `if` around the photon visit; grid cells 0.5x-1.5x the current "
+              "edge (0.5x: the five-chain gather 2.7x slower, the cell steps cost as much as photon "
+              "steps; 1.25x-1.5x: flat). Where the five-chain extra goes: the ~z search at hit point B "
+              "reaches the largest radius and costs ~2x the ~y search (its four chains' sums cost "
+              "almost nothing: one chain at r_z4 measured the same), and B's eye path and direct "
+              "light ~2x 22 ms."]
     conv = report.get("convergence")
     if conv:
         lines += ["", f"Convergence of ~z^1 on `diffuse_glossy` {conv['resolution']} against {conv['reference']}:", "",

@@ -106,8 +106,10 @@ def lambertian_table(scene: mi.Scene) -> LambertianTable:
 @dr.syntax
 def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int,
           null_bsdfs: bool = False):
-    """Follow delta bounces; returns the last ray, throughput, L_e, path length, segments,
-    found, and which lanes dropped a non-finite term."""
+    """Follow delta bounces; returns the last ray, its preliminary intersection (the
+    gather point where found), throughput, L_e, path length, segments, found, and which
+    lanes dropped a non-finite term."""
+    last = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray))
     beta = mi.Color3f(1.0)
     emitted = mi.Color3f(0.0)
     length = mi.Float(0.0)
@@ -118,7 +120,10 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
 
     while active:
-        si = scene.ray_intersect(ray, active)
+        # What ray_intersect does, kept in two steps so that the gather point's
+        # preliminary intersection leaves the loop (no second trace of the last ray).
+        pi = scene.ray_intersect_preliminary(ray, False, active)
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
         depth += 1
         # The environment (invalid si) or an area light: what the eye sees directly.
         emitter = si.emitter(scene, active)
@@ -144,6 +149,7 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
             smooth &= ~passes
         stop_here = hit & smooth
         found |= stop_here
+        last[stop_here] = pi
         length += dr.select(hit, si.t, 0.0)
         active = hit & ~smooth & (depth < max_depth)
 
@@ -162,7 +168,7 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
         bad |= active & ~finite
         active &= (~roulette | survive) & dr.any(beta > 0.0) & finite
 
-    return ray, beta, emitted, length, depth, found, bad
+    return ray, last, beta, emitted, length, depth, found, bad
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
@@ -185,12 +191,11 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     ray = mi.Ray3f(ray)
 
     depth_cap = mi.UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
-    last_ray, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth,
-                                                                   _has_null_bsdf(scene))
+    last_ray, hit, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth,
+                                                                        _has_null_bsdf(scene))
     beta *= ray_weight
     emitted *= ray_weight
 
-    hit = scene.ray_intersect_preliminary(last_ray, False, found)
     si = hit.compute_surface_interaction(last_ray, mi.RayFlags.All, found)
     bsdf = si.bsdf(last_ray)
     albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
