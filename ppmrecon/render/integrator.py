@@ -301,23 +301,21 @@ class Renderer:
         grid = build_grid(photon_map, cell, split_direct=s.direct == "all")
         t3 = clock()
         results = []
-        # The search loops are not evaluated on their own: the pass's accumulators below
-        # consume their sums in the same kernel (no write and re-read of every chain's
-        # flux and count, one launch fewer); the gather stage times that kernel.
+        inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
+        n_bad = dr.zeros(mi.UInt32, self.n_pixels)
+        n_dropped = dr.zeros(mi.UInt32, self.n_pixels)
+        # The search loop of each hit point is not evaluated on its own: the accumulators
+        # of its chains consume its sums in the same kernel (no write and re-read of every
+        # chain's flux and count). One kernel per hit point, not one for the pass: with
+        # both search loops (each with its BSDF call) in one kernel, Dr.Jit 1.5's LLVM
+        # backend intermittently emitted the BSDF callable twice ("invalid redefinition
+        # of function") and aborted. The gather stage times these kernels.
         for j, p in enumerate(points):
             chains = self._chains_of(j)
             res = gather(p, [radii[c] for c in chains], grid, s.kernel,
                          self.controller.stats_targets(chains), max_depth=s.max_depth,
                          indirect_only=None if direct[j] is None else direct[j][0], evaluate=False)
             results.append((chains, res))
-
-        inv_j = dr.opaque(mi.Float, 1.0 / s.photons)
-        # Every accumulator of the pass in one kernel, and one host read of the count of
-        # non-finite estimates (per chain, each was a kernel and a pipeline stall).
-        n_bad = dr.zeros(mi.UInt32, self.n_pixels)
-        n_dropped = dr.zeros(mi.UInt32, self.n_pixels)
-        for j, (chains, res) in enumerate(results):
-            p = points[j]
             n_dropped += res.nonfinite
             for slot, c in enumerate(chains):
                 reflected = res.flux[slot] * inv_j
@@ -329,12 +327,13 @@ class Renderer:
                 finite = dr.all(dr.isfinite(estimate))
                 n_bad += dr.select(finite, mi.UInt32(0), mi.UInt32(1))
                 self.means[c].add(dr.select(finite, estimate, 0.0), evaluate=False)
+            dr.eval(n_bad, n_dropped, [(self.means[c].mean, self.means[c].m2) for c in chains], res.count, res.pending)
         for p in points:
             self.albedo.add(p.albedo, evaluate=False)
             self.normal.add(p.normal, evaluate=False)
             self.depth.add(p.depth, evaluate=False)
-        dr.eval(n_bad, n_dropped, [(m.mean, m.m2) for m in self.means], self.albedo.mean, self.normal.mean,
-                self.depth.mean, [(res.count, res.pending) for _, res in results])
+        # One host read of the non-finite counts per pass (per chain, each was a pipeline stall).
+        dr.eval(self.albedo.mean, self.normal.mean, self.depth.mean)
         for _, res in results:
             res.nonfinite = 0  # counted in n_dropped
         if self.n_pixels:
