@@ -89,15 +89,13 @@ class GatherResult:
 
 def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: str = "constant",
            stats: list["CellStatistics"] | None = None, max_depth: int = -1,
-           indirect_only: mi.Bool | None = None, defer_counts: bool = False,
-           evaluate: bool = True) -> GatherResult:
+           indirect_only: mi.Bool | None = None, evaluate: bool = True) -> GatherResult:
     """Sum photon contributions within each radius of ``radii`` (one array per chain slot,
     0 for unused slots) around every gather point of ``gp``; with ``stats`` (one per
     slot) also accumulate the per-cell statistics of the photons inside each radius.
     ``max_depth``: segments of the whole path (-1: unbounded). ``indirect_only``: gather
     points whose direct light is estimated apart (:mod:`.direct`); they skip the photons
-    that arrive straight from an emitter (bounce index 0). ``defer_counts``: the result's
-    ``nonfinite`` stays a one-element device value (no host read here). ``evaluate=False``:
+    that arrive straight from an emitter (bounce index 0). ``evaluate=False``:
     nothing is evaluated here, so that the caller's ``dr.eval`` runs the search loop in the
     kernel that also consumes its sums (see the result's ``pending``)."""
     if stats is not None and len(stats) != len(radii):
@@ -252,6 +250,5 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
     dr.eval(flux, count, dropped)
     if stats is not None:  # the scatters ran in the loop kernel; make them visible
         dr.eval(*(st.data for st in stats))
-    nonfinite = dr.sum(dropped) if dr.width(dropped) else 0
-    nonfinite = int(nonfinite[0]) if dr.width(dropped) and not defer_counts else nonfinite
+    nonfinite = int(dr.sum(dropped)[0]) if dr.width(dropped) else 0
     return GatherResult(flux=flux, count=count, nonfinite=nonfinite)

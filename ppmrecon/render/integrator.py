@@ -332,10 +332,9 @@ class Renderer:
             self.albedo.add(p.albedo, evaluate=False)
             self.normal.add(p.normal, evaluate=False)
             self.depth.add(p.depth, evaluate=False)
-        # One host read of the non-finite counts per pass (per chain, each was a pipeline stall).
         dr.eval(self.albedo.mean, self.normal.mean, self.depth.mean)
-        for _, res in results:
-            res.nonfinite = 0  # counted in n_dropped
+        # The non-finite counts stay on the device until the end of the pass (a host read
+        # per chain was a pipeline stall each).
         if self.n_pixels:
             dropped["estimate"] += dr.sum(n_bad)
             dropped["gather"] += dr.sum(n_dropped)
