@@ -142,14 +142,16 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
-            guard: str = "on", tile: int | None = None, device: str = "cpu", precision: str = "auto") -> np.ndarray:
+            guard: str = "on", guide: str = "on", tile: int | None = None, device: str = "cpu",
+            precision: str = "auto") -> np.ndarray:
     """The consistent learned reconstruction of a render (paper 002 Eq. 6): (H, W, 3) float32.
 
     ``buffers``: a :class:`BufferFile` (what :func:`render` returns) or the path of a
     buffer file. ``model``: None for the model shipped with ppmrecon, a checkpoint path,
     or a loaded model (:func:`load_model`). ``guard``: the firefly guard, ``on``
     (default), ``off`` or ``model`` (as the checkpoint was trained), as
-    ``ppmrecon-denoise --guard``; ``tile``, ``device``, ``precision`` as its options.
+    ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4 steering
+    the weights), likewise; ``tile``, ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
     >>> buf = ppmrecon.render("plane_point", passes=2, photons=4096, resolution=16)
@@ -159,17 +161,18 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import guard_choice, torch_device
+    from .model.cli import guard_choice, guide_choice, torch_device
     from .model.infer import denoise as run
 
-    if guard not in ("on", "off", "model"):
-        raise UsageError(f"denoise: guard must be on, off or model, got {guard!r}")
+    for name, value in (("guard", guard), ("guide", guide)):
+        if value not in ("on", "off", "model"):
+            raise UsageError(f"denoise: {name} must be on, off or model, got {value!r}")
     buf = load_buffers(buffers) if isinstance(buffers, (str, os.PathLike)) else buffers
     if not isinstance(buf, BufferFile):
         raise UsageError(f"denoise: expected a BufferFile or a buffer-file path, got {type(buffers).__name__}")
     net = load_model(model)
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
-               guard=guard_choice(guard, net.guard)).rgb
+               guard=guard_choice(guard, net.guard), guide=guide_choice(guide, net.guide)).rgb
 
 
 def load_buffers(path: str | os.PathLike) -> BufferFile:

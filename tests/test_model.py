@@ -379,9 +379,10 @@ def test_cropped_features_equal_the_crop_of_whole_image_features(config):
     from ppmrecon.model.features import buffer_scales
 
     buf = make_buffer(17, 23, seed=13)
-    whole = from_buffer(buf, config)
+    guide = torch.rand(1, 4, 17, 23)             # any whole-image planes: cropped like the rest
+    whole = from_buffer(buf, config, guide=guide)
     rows, cols = slice(3, 11), slice(15, 23)
-    part = from_buffer(buf, config, (rows, cols), buffer_scales(buf, config))
+    part = from_buffer(buf, config, (rows, cols), buffer_scales(buf, config), guide)
     for a, b in zip(part, whole):
         torch.testing.assert_close(a, b[..., rows, cols], rtol=0, atol=0)
     alone = from_buffer(buf, config, (rows, cols))        # scales default to the whole buffer's too

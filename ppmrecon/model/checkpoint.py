@@ -10,6 +10,8 @@ A checkpoint is a ``torch.save`` dict of plain types and tensors only, so it loa
     features        the feature settings (FeatureConfig.to_dict())
     guard           the firefly guard settings (GuardConfig.to_dict()); absent before
                     format 2, read as the guard off (those models never saw it)
+    guide           the denoiser-guide settings (GuideConfig.to_dict()); absent before
+                    format 3, read as the guide off
     state_dict      the weights
     meta            free-form training information (epochs, validation relMSE, ...)
 
@@ -32,11 +34,13 @@ from ..errors import UsageError
 from ..fileio import atomic_write
 from .features import FeatureConfig
 from .guard import GuardConfig
+from .guide import GuideConfig
 from .kpn import DEFAULT_PRESET, KPN, Preset, build
 
 FORMAT = "ppmrecon-kpn"
 #: 2: adds "guard" (an older ppmrecon must not run a guard-trained model without it)
-FORMAT_VERSION = 2
+#: 3: adds "guide" (likewise: a guide-trained network's logits are a correction to the prior)
+FORMAT_VERSION = 3
 #: A shipped default model is picked up from here when it exists.
 DEFAULT_MODEL = MODELS / "default.pt"
 _ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
@@ -60,6 +64,7 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
         "preset": model.preset.to_dict(),
         "features": model.features.to_dict(),
         "guard": model.guard.to_dict(),
+        "guide": model.guide.to_dict(),
         "state_dict": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
         "meta": dict(meta or {}),
     }
@@ -68,10 +73,10 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
 
 def init_checkpoint(path: str | os.PathLike, preset: Preset | str = DEFAULT_PRESET,
                     features: FeatureConfig = FeatureConfig(), seed: int = 0,
-                    guard: GuardConfig = GuardConfig()) -> KPN:
+                    guard: GuardConfig = GuardConfig(), guide: GuideConfig = GuideConfig()) -> KPN:
     """Write a freshly initialised (untrained) model to ``path`` and return it."""
     torch.manual_seed(seed)
-    model = build(preset, features, guard)
+    model = build(preset, features, guard, guide)
     save_checkpoint(path, model, {"trained": False, "seed": seed})
     return model
 
@@ -122,16 +127,19 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     for key, kind in (("preset", dict), ("features", dict), ("state_dict", dict)):
         if not isinstance(data.get(key), kind):
             raise fail(f"checkpoint lacks '{key}'")
-    guard_data = data.get("guard", {})
+    guard_data, guide_data = data.get("guard", {}), data.get("guide", {})
     if not isinstance(guard_data, dict):
         raise fail("checkpoint has an unreadable 'guard'")
+    if not isinstance(guide_data, dict):
+        raise fail("checkpoint has an unreadable 'guide'")
     try:
         preset = Preset.from_dict(data["preset"])
         features = FeatureConfig.from_dict(data["features"])
         guard = GuardConfig.from_dict(guard_data)
+        guide = GuideConfig.from_dict(guide_data)
     except (TypeError, ValueError) as exc:
         raise fail(f"invalid architecture in checkpoint ({exc})") from None
-    model = KPN(preset, features, guard)
+    model = KPN(preset, features, guard, guide)
     try:
         model.load_state_dict(data["state_dict"], strict=True)
     except RuntimeError as exc:

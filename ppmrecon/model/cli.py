@@ -2,7 +2,7 @@
 
     ppmrecon-denoise INPUT.exr [INPUT.exr | 'PATTERN*.exr' ...] [--model CKPT]
                      [--output OUT.exr] [--tile N] [--weights-layers] [--device cpu|cuda]
-                     [--threads N] [--guard model|on|off] [--quiet]
+                     [--threads N] [--guard model|on|off] [--guide model|on|off] [--quiet]
     ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
 
 The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
@@ -14,7 +14,9 @@ default model is used if the package has one (``ppmrecon/data/models/default.pt`
 ``--init-checkpoint`` writes an untrained network, for trying the pipeline end to end
 before a model has been trained. ``--guard`` switches the consistent firefly guard
 (:mod:`ppmrecon.model.guard`) on or off; by default it is on (measured on renders it was
-not tuned on: benchmarks/results/guard.md).
+not tuned on: benchmarks/results/guard.md). ``--guide`` likewise switches the denoiser guide
+(:mod:`ppmrecon.model.guide`: OIDN's image of ~z^4 steers the weights, never the output's
+consistency); on by default.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
+from .guide import DEFAULT_GUIDE, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -44,6 +47,7 @@ H_MODEL = "ppmrecon.model"
 H_DENOISE_SECONDS = "ppmrecon.denoise_seconds"
 H_GUARD = "ppmrecon.guard"
 H_ANCHOR = "ppmrecon.guard.anchor"
+H_GUIDE = "ppmrecon.guide"
 
 
 
@@ -79,6 +83,12 @@ def build_parser() -> ArgumentParser:
                    help="consistent firefly guard: replace statistical outliers of each input by "
                         "their 3x3 median and keep the output within its five inputs; 'on' (default; "
                         "the checkpoint's guard settings if it has them), 'model' = as the checkpoint "
+                        "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
+                        "(default there: off)")
+    p.add_argument("--guide", choices=("model", "on", "off"), default=None,
+                   help="denoiser guide: weights that pull the combination towards OIDN's image of "
+                        "~z^4 (pyoidn), still a convex combination of consistent terms; 'on' (default; "
+                        "the checkpoint's guide settings if it has them), 'model' = as the checkpoint "
                         "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
                         "(default there: off)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
@@ -125,11 +135,21 @@ def guard_choice(choice: str, model_guard: GuardConfig) -> GuardConfig:
     return model_guard
 
 
+def guide_choice(choice: str, model_guide: GuideConfig) -> GuideConfig:
+    """The denoiser guide to run with, chosen as :func:`guard_choice` chooses the guard."""
+    if choice == "off":
+        return GuideConfig()
+    if choice == "on":
+        return model_guide if model_guide.enabled else DEFAULT_GUIDE
+    return model_guide
+
+
 def _init_checkpoint(args) -> int:
     features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature,
                              scale_free=args.scale_free_features, outliers=args.outlier_features)
     model = checkpoint.init_checkpoint(args.init_checkpoint, load_preset(args.preset), features, seed=args.seed,
-                                       guard=guard_choice(args.guard or "off", GuardConfig()))
+                                       guard=guard_choice(args.guard or "off", GuardConfig()),
+                                       guide=guide_choice(args.guide or "off", GuideConfig()))
     if not args.quiet:
         print(f"{args.init_checkpoint}: untrained '{model.preset.name}' model, "
               f"{parameter_count(model):,} parameters, {features.n_channels} input channels")
@@ -186,13 +206,14 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if not guard.enabled:
             raise UsageError("--anchor is part of the guard: it needs --guard on (the default)")
         guard = replace(guard, anchor=args.anchor)
+    guide = guide_choice(args.guide or "on", model.guide)
     for src, out in zip(inputs, outputs):
-        _denoise_one(args, src, out, model, model_path, device, guard)
+        _denoise_one(args, src, out, model, model_path, device, guard, guide)
     return 0
 
 
 def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_path: Path,
-                 device: torch.device, guard: GuardConfig) -> None:
+                 device: torch.device, guard: GuardConfig, guide: GuideConfig) -> None:
     """Denoise one buffer file into ``out`` (atomically) and print its summary line."""
     buf = read_buffers(src)
     progress = Progress("denoise", quiet=args.quiet)
@@ -204,7 +225,7 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     start = time.perf_counter()
     try:
         result = denoise(buf, model, tile=args.tile, device=device, progress=report, precision=args.precision,
-                         guard=guard)
+                         guard=guard, guide=guide)
     finally:
         progress.close()
     seconds = time.perf_counter() - start
@@ -214,7 +235,8 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
         extra = {f"{WEIGHT_LAYER}.{name}": result.weights_per_z[j] for j, name in enumerate(ESTIMATES[1:])}
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
-                   H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0})
+                   H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0,
+                   H_GUIDE: f"oidn(z{guide.source}) beta={guide.beta:g}" if guide.enabled else "off"})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape

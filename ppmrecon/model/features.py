@@ -105,6 +105,8 @@ class ModelInputs(NamedTuple):
     features: torch.Tensor   # (1, C, H, W) network input
     y: torch.Tensor          # (1, 3, H, W) raw ~y
     z: torch.Tensor          # (1, 4, 3, H, W) raw ~z^1..~z^4
+    #: (1, 4, H, W) the denoiser guide and its tolerance (:mod:`.guide`); None without a guide
+    guide: torch.Tensor | None = None
 
 
 def compress_radiance(x: torch.Tensor) -> torch.Tensor:
@@ -220,11 +222,13 @@ def _widen(s: slice, size: int, by: int) -> tuple[slice, slice]:
 
 
 def from_buffer(buf: BufferFile, config: FeatureConfig = FeatureConfig(),
-                crop: tuple[slice, slice] | None = None, scales: FeatureScales | None = None) -> ModelInputs:
+                crop: tuple[slice, slice] | None = None, scales: FeatureScales | None = None,
+                guide: torch.Tensor | None = None) -> ModelInputs:
     """Network features and raw ~y, ~z of one buffer file (see module docstring).
 
     ``crop=(rows, cols)`` gives the inputs of that window only, normalised like the
     whole image (pass ``scales=buffer_scales(buf, config)`` to compute the scales once).
+    ``guide``: the whole image's (1, 4, H, W) :func:`.guide.guide_planes`, cropped alike.
     """
     rows, cols = crop or (slice(None), slice(None))
     if scales is None:
@@ -244,4 +248,7 @@ def from_buffer(buf: BufferFile, config: FeatureConfig = FeatureConfig(),
                            radii=t(buf.radii[:, rows, cols]) if config.radius else None,
                            passes=torch.tensor([passes_of(buf)]) if config.passes else None, scales=scales)
     est = est[..., keep_r, keep_c]
-    return ModelInputs(feats[..., keep_r, keep_c].contiguous(), est[:, 0].contiguous(), est[:, 1:].contiguous())
+    if guide is not None:
+        guide = guide[..., crop[0], crop[1]].contiguous() if crop else guide
+    return ModelInputs(feats[..., keep_r, keep_c].contiguous(), est[:, 0].contiguous(), est[:, 1:].contiguous(),
+                       guide)

@@ -27,7 +27,8 @@ from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
-from .guard import GuardConfig, finish, guard_buffer
+from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale
+from .guide import GuideConfig, guide_planes, prior_logits
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -107,7 +108,7 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
     is applied here.
     """
     def source(rows: slice, cols: slice) -> ModelInputs:
-        return ModelInputs(*(t[..., rows, cols] for t in inputs))
+        return ModelInputs(*(None if t is None else t[..., rows, cols] for t in inputs))
 
     _, _, height, width = inputs.y.shape
     guard = model.guard if guard is None else guard
@@ -117,7 +118,8 @@ def denoise_inputs(inputs: ModelInputs, model: KPN, tile: int | None = None,
 
 def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | torch.device = "cpu",
             progress: ProgressFn | None = None, precision: str = "auto",
-            workers: int | None = None, guard: GuardConfig | None = None) -> Denoised:
+            workers: int | None = None, guard: GuardConfig | None = None,
+            guide: GuideConfig | None = None) -> Denoised:
     """Denoise one buffer file: ``(rgb (H, W, 3), weights_per_z (4, H, W))``.
 
     ``tile=None`` picks the tile size (:func:`auto_tile`); a tile at least as large as
@@ -127,20 +129,30 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     computed per tile (with the whole image's normalisers), so no full-resolution
     feature tensor is ever held. ``guard`` overrides the model's firefly guard
     (:attr:`KPN.guard`); the guard is consistent, so switching it on never changes
-    what the result converges to.
+    what the result converges to. ``guide`` likewise overrides the model's denoiser
+    guide (:attr:`KPN.guide`, :mod:`.guide`), which only shapes the weights.
     """
     guard = model.guard if guard is None else guard
+    guide = model.guide if guide is None else guide
     buf = guard_buffer(buf, guard)                      # whole image: medians need no halo
     scales = buffer_scales(buf, model.features)
     from_buffer(buf, model.features, (slice(0, 1), slice(0, 1)), scales)   # header problems fail early
+    planes = buffer_guide(buf, guide, guard) if guide.enabled else None
 
     def source(rows: slice, cols: slice) -> ModelInputs:
-        return from_buffer(buf, model.features, (rows, cols), scales)
+        return from_buffer(buf, model.features, (rows, cols), scales, planes)
 
     height, width = buf.shape
     combined = _denoise(source, height, width, model, tile, device, progress, precision, workers)
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)   # (5, 3, H, W)
     return _finish(combined, est[0], est[1:], guard)
+
+
+def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> torch.Tensor:
+    """:func:`.guide.guide_planes` of a whole (guarded) buffer file, (1, 4, H, W)."""
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    floor = guard.floor if guard.enabled else RELATIVE_FLOOR
+    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, float(image_scale(est)), floor)
 
 
 def _finish(combined: Denoised, y: torch.Tensor, z: torch.Tensor, guard: GuardConfig) -> Denoised:
@@ -180,6 +192,8 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
             inp = source(slice(ya, yb), slice(xa, xb))
             logits = model.predict(inp.features.to(device), precision)
             y, z = inp.y.to(device), inp.z.to(device)
+            if inp.guide is not None:
+                logits = logits + prior_logits(y, z, inp.guide.to(device), model.window)
             try:
                 out = combine_with_weights(y, z, logits, method="loop")
             except NonFiniteLogitsError:

@@ -27,6 +27,7 @@ from ..fileio import unknown_keys
 from .combine import logit_channels
 from .features import FeatureConfig
 from .guard import GuardConfig
+from .guide import GuideConfig
 
 PRESETS_DIR: Path = MODELS
 #: The CPU default: the only preset within a few times OIDN's time at 720p on 2 cores
@@ -103,16 +104,20 @@ def load_preset(name_or_path: str | os.PathLike) -> Preset:
 class KPN(nn.Module):
     """Features (B, C, H, W) -> combination logits (B, 4 K^2, H, W) (paper 002 Fig. 4).
 
-    ``guard`` is not part of the network: it is the firefly guard (:mod:`.guard`) the
-    model was trained with, kept here so that it travels with the checkpoint.
+    ``guard`` and ``guide`` are not part of the network: they are the firefly guard
+    (:mod:`.guard`) and the denoiser guide (:mod:`.guide`) the model was trained with,
+    kept here so that they travel with the checkpoint. With the guide on, the logits are
+    a correction added to the guide's prior, and the head starts at zero (an untrained
+    model is the guide alone).
     """
 
     def __init__(self, preset: Preset, features: FeatureConfig = FeatureConfig(),
-                 guard: GuardConfig = GuardConfig()):
+                 guard: GuardConfig = GuardConfig(), guide: GuideConfig = GuideConfig()):
         super().__init__()
         self.preset = preset
         self.features = features
         self.guard = guard
+        self.guide = guide
         body: list[nn.Module] = []
         channels = features.n_channels
         for _ in range(preset.layers - 1):
@@ -126,6 +131,8 @@ class KPN(nn.Module):
             if isinstance(m, nn.Conv2d):
                 nn.init.xavier_uniform_(m.weight)   # Glorot uniform (paper 002 Sec. 4.3)
                 nn.init.zeros_(m.bias)
+        if guide.enabled:
+            nn.init.zeros_(self.head.weight)   # residual on the prior: start from the guide
 
     @property
     def window(self) -> int:
@@ -171,8 +178,8 @@ def parameter_count(model: nn.Module) -> int:
 
 
 def build(preset: Preset | str, features: FeatureConfig = FeatureConfig(),
-          guard: GuardConfig = GuardConfig()) -> KPN:
+          guard: GuardConfig = GuardConfig(), guide: GuideConfig = GuideConfig()) -> KPN:
     """A freshly initialised network for a preset (name, path or :class:`Preset`)."""
     if not isinstance(preset, Preset):
         preset = load_preset(preset)
-    return KPN(preset, features, guard)
+    return KPN(preset, features, guard, guide)

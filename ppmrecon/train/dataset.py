@@ -34,6 +34,7 @@ from .. import buffers as B
 from ..errors import PpmreconError, UsageError
 from ..model.features import FeatureConfig, from_buffer
 from ..model.guard import GuardConfig, guard_buffer
+from ..model.guide import GuideConfig
 from .augment import transform_image, transform_normals
 from .datagen import REFERENCE, input_name, load_manifest
 
@@ -53,12 +54,14 @@ class Sample:
     reference: torch.Tensor  # (3, H, W)
     #: Position among the split's candidates (the shard key; see the module docstring).
     index: int = -1
+    #: (4, H, W) the denoiser guide and its tolerance (:mod:`..model.guide`), or None
+    guide: torch.Tensor | None = None
 
 
 def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = FeatureConfig(),
                passes: int | None = None, warn: Warn | None = None,
                guard: GuardConfig = GuardConfig(), max_disagreement: float | None = None,
-               shard: tuple[int, int] | None = None) -> list[Sample]:
+               shard: tuple[int, int] | None = None, guide: GuideConfig = GuideConfig()) -> list[Sample]:
     """All usable samples of ``split`` ("train" or "val"), optionally of one pass count.
 
     ``max_disagreement``: skip scenes whose two reference halves disagree by more than
@@ -66,7 +69,10 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
     converged teaches its own noise.
     ``shard`` = (rank, world): load only the candidates with index % world == rank (the
     manifest-only warnings come from rank 0 alone).
+    ``guide``: with it on, each sample carries the guide of its guarded buffer file, made
+    as inference makes it (:func:`..model.infer.buffer_guide`).
     """
+    from ..model.infer import buffer_guide   # infer imports the model package, not train
     root = Path(root)
     warn = warn or (lambda msg: None)
     manifest = load_manifest(root)
@@ -111,12 +117,14 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
                 warn(f"skipping {path}: size {buf.shape} differs from the reference {ref_np.shape[:2]}")
                 continue
             try:
-                inputs = from_buffer(guard_buffer(buf, guard), features)
+                guarded = guard_buffer(buf, guard)
+                inputs = from_buffer(guarded, features)
+                planes = buffer_guide(guarded, guide, guard)[0] if guide.enabled else None
             except PpmreconError as exc:   # e.g. no pass count in the header
                 warn(f"skipping {path}: {exc}")
                 continue
             samples.append(Sample(str(path), scene["id"], int(entry.get("passes", 0)),
-                                  inputs.features[0], inputs.y[0], inputs.z[0], reference, index))
+                                  inputs.features[0], inputs.y[0], inputs.z[0], reference, index, planes))
     return samples
 
 
@@ -175,19 +183,22 @@ class PatchSampler:
         s = self.local[g]
         full = min(self.patch, *s.y.shape[-2:])
         crop = (..., slice(y0, y0 + full), slice(x0, x0 + full))
-        feats, y, z, ref = s.features[crop], s.y[crop], s.z[crop], s.reference[crop]
+        images = [s.features[crop], s.y[crop], s.z[crop], s.reference[crop]]
+        if s.guide is not None:
+            images.append(s.guide[crop])
         if self.augment:
-            feats, y, z, ref = (transform_image(t, turns, flip) for t in (feats, y, z, ref))
-            feats = feats.clone()
-            feats[self.normal] = transform_normals(feats[self.normal], turns, flip)
-        return tuple(t[..., :p, :p] for t in (feats, y, z, ref))
+            images = [transform_image(t, turns, flip) for t in images]
+            images[0] = images[0].clone()
+            images[0][self.normal] = transform_normals(images[0][self.normal], turns, flip)
+        return tuple(t[..., :p, :p] for t in images)
 
-    def cut(self, rows: list[Row]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def cut(self, rows: list[Row]) -> tuple[torch.Tensor, ...]:
         """(features (B, C, P, P), y (B, 3, P, P), z (B, 4, 3, P, P), reference (B, 3, P, P))
-        of ``rows`` (all held by this rank)."""
+        of ``rows`` (all held by this rank), and the guide (B, 4, P, P) when the samples
+        have one."""
         parts = [self._one(r) for r in rows]
-        return tuple(torch.stack(list(x)) for x in zip(*parts))  # type: ignore[return-value]
+        return tuple(torch.stack(list(x)) for x in zip(*parts))
 
-    def batch(self, size: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    def batch(self, size: int) -> tuple[torch.Tensor, ...]:
         """A batch of ``size`` patches (one process holding every sample)."""
         return self.cut(self.plan(size))

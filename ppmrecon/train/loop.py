@@ -36,6 +36,7 @@ from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
 from ..model.features import FeatureConfig, ModelInputs
 from ..model.guard import GuardConfig, finish
+from ..model.guide import GuideConfig, prior_logits
 from ..model.infer import denoise_inputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
@@ -57,6 +58,9 @@ class TrainConfig:
     features: dict[str, bool] = field(default_factory=dict)
     #: firefly guard settings (GuardConfig fields; {} = off, {"enabled": true} = the defaults)
     guard: dict[str, Any] = field(default_factory=dict)
+    #: denoiser guide settings (GuideConfig fields; {} = off): the network learns a
+    #: correction to the guide's prior logits and starts as the guide alone
+    guide: dict[str, Any] = field(default_factory=dict)
     lr: float = 1e-4
     batch: int = 8
     patch: int = 64
@@ -95,7 +99,7 @@ def _validate(model: torch.nn.Module, samples: list[Sample], device: torch.devic
     log_ratio = 0.0
     count = len(samples)
     for s in samples:
-        inputs = ModelInputs(s.features[None], s.y[None], s.z[None])
+        inputs = ModelInputs(s.features[None], s.y[None], s.z[None], None if s.guide is None else s.guide[None])
         rgb = denoise_inputs(inputs, model, tile=None, device=device).rgb
         ref = s.reference.permute(1, 2, 0).numpy()
         mine = relmse(rgb, ref)
@@ -131,8 +135,10 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
         h, w = sampler.catalog[g]
         feats = sampler.cut([(g, 0, 0, 0, False, min(rows[0][5], h, w))])[0].to(dev)
         return model(feats).sum() * 0.0, dist.all_sum([0.0])[0]
-    feats, y, z, ref = (t.to(dev) for t in sampler.cut(mine))
+    feats, y, z, ref, *guide = (t.to(dev) for t in sampler.cut(mine))
     logits = model(feats)
+    if guide:                    # the network's logits correct the guide's prior (inference does the same)
+        logits = logits + prior_logits(y, z, guide[0], _window(model))
     pred = combine(y, z, logits, method="unfold")
     if guard.enabled:     # anchor + band as inference applies them (Eq. 8 clips at 0 itself)
         pred = finish(pred, y, z, guard)
@@ -144,6 +150,10 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
     share = len(mine) / len(rows)   # rows are equal-sized patches: the batch mean is the share-weighted mean
     total = dist.all_sum([loss.item() * share])[0]
     return loss * (share * dist.world), total
+
+
+def _window(model: torch.nn.Module) -> int:
+    return (model.module if hasattr(model, "module") else model).window
 
 
 def _sharded_sampler(samples: list[Sample], cfg: TrainConfig, features: FeatureConfig,
@@ -179,20 +189,21 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     try:
         features = FeatureConfig.from_dict(cfg.features)
         guard = GuardConfig.from_dict(cfg.guard)
+        guide = GuideConfig.from_dict(cfg.guide)
     except (TypeError, ValueError) as exc:
         raise UsageError(f"training config: {exc}") from None
     torch.manual_seed(cfg.seed)
     shard = (dist.rank, dist.world) if dist is not None else None
     train_samples = load_split(data, "train", features, warn=warn, guard=guard,
-                               max_disagreement=cfg.max_reference_disagreement, shard=shard)
+                               max_disagreement=cfg.max_reference_disagreement, shard=shard, guide=guide)
     config = json.loads((Path(data) / "manifest.json").read_text()).get("config", {})
     passes = sorted(config.get("input_passes", []))
     val_passes = cfg.val_passes if cfg.val_passes is not None else (passes[len(passes) // 2] if passes else None)
     val_samples = load_split(data, "val", features, passes=val_passes or None, warn=warn, guard=guard,
-                             max_disagreement=cfg.max_reference_disagreement, shard=shard)
+                             max_disagreement=cfg.max_reference_disagreement, shard=shard, guide=guide)
     sampler = _sharded_sampler(train_samples, cfg, features, dist)
 
-    model = build(cfg.preset, features, guard).to(dev)
+    model = build(cfg.preset, features, guard, guide).to(dev)
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     history: list[dict[str, Any]] = []
     start_epoch = 0
@@ -226,6 +237,19 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
     n_train = len(sampler.catalog)
     best = min((h["val"][key] for h in history
                 if h.get("val") and key in h["val"] and h.get("val_images") == val_ids), default=math.inf)
+    if guide.enabled and start_epoch == 0 and not history:
+        # the guide alone (the zero-initialised head) is a candidate too: best.pt is
+        # never worse on validation than the model one starts from
+        val0 = _validate(model, val_samples, dev, dist)
+        if val0 and val0[key] < best:
+            best = val0[key]
+            if main:
+                save_checkpoint(out / BEST, model, {"trained": False, "epochs": 0, "preset": cfg.preset,
+                                                    "train_config": asdict(cfg), "data": str(data),
+                                                    "val": dict(val0), "train_seconds": 0.0})
+        if val0 and not quiet:
+            print(f"epoch 0 (the guide alone): val relMSE {val0['output']:.4f} vs best input "
+                  f"{val0['best_single']:.4f}, per image {val0['image_ratio']:.3f}x", flush=True)
     t_start = time.perf_counter()
     label = f"ppmrecon-train {cfg.preset} ({n_params} params{f', {dist.world} ranks' if dist else ''})"
     progress = Progress(label, total=cfg.epochs * cfg.steps_per_epoch, quiet=quiet)
