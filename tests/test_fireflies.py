@@ -440,7 +440,7 @@ def test_scale_free_features_need_the_radiance_scale_for_crops():
 
 # ------------------------------------------------------------------------ training
 
-@pytest.mark.parametrize("name", ["cpu", "cpu_small", "cpu_paper", "cpu_v2"])
+@pytest.mark.parametrize("name", ["cpu", "cpu_small", "cpu_paper", "cpu_v2", "cpu_v2_guide"])
 def test_shipped_training_configs_train_with_the_guard(name):
     from ppmrecon.data import CONFIGS
     from ppmrecon.train.loop import TrainConfig

@@ -23,6 +23,7 @@ import mitsuba as mi  # noqa: E402
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.data import CONFIGS as CONFIGS_DIR  # noqa: E402
 from ppmrecon.model import checkpoint as C  # noqa: E402
+from ppmrecon.model.guide import GuideConfig  # noqa: E402
 from ppmrecon.model import cli as denoise_cli  # noqa: E402
 from ppmrecon.render.eye import trace_eye  # noqa: E402
 from ppmrecon.train import cli as train_cli  # noqa: E402
@@ -333,3 +334,29 @@ def test_scenes_with_unconverged_references_can_be_left_out(tiny_data, tmp_path)
     kept = load_split(data, "train", warn=warnings.append, max_disagreement=1.0)
     assert {s.scene for s in everything} - {s.scene for s in kept} == {train[0]["id"]}
     assert len(kept) < len(everything) and any(train[0]["id"] in w and "disagree" in w for w in warnings)
+
+
+def test_guided_fit_starts_from_the_guide_and_resumes(tiny_data, tmp_path, capsys):
+    """With a guide in the config the samples carry it, the head starts at zero (the guide
+    alone), that start is validated as epoch 0 and can be best.pt; training moves the head,
+    the checkpoint carries the guide, and a resumed run continues."""
+    root, _ = tiny_data
+    cfg = tmp_path / "train.json"
+    cfg.write_text(json.dumps({"preset": "tiny", "select": "ratio", "val_passes": 0, "epochs": 1,
+                               "steps_per_epoch": 3, "batch": 2, "lr": 1e-2, "guard": {"enabled": True},
+                               "guide": {"enabled": True}, "features": {"scale_free": True}}))
+    run = tmp_path / "run"
+    assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg)]) == 0
+    assert "epoch 0 (the guide alone)" in capsys.readouterr().out
+    samples = load_split(root, "val", guide=GuideConfig(enabled=True))
+    assert samples and all(s.guide is not None and s.guide.shape[1:] == s.y.shape[1:] for s in samples)
+    model = C.load_checkpoint(run / "model.pt").model
+    assert model.guide.enabled and float(model.head.weight.detach().abs().sum()) > 0
+    best = C.load_checkpoint(run / "best.pt")
+    history = json.loads((run / "history.json").read_text())
+    assert best.meta["epochs"] in (0, 1) and best.model.guide.enabled
+    if best.meta["epochs"] == 0:
+        assert best.meta["val"]["image_ratio"] <= history[0]["val"]["image_ratio"]
+    cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "epochs": 2}))
+    assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg), "--resume", "--quiet"]) == 0
+    assert [h["epoch"] for h in json.loads((run / "history.json").read_text())] == [1, 2]

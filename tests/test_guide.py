@@ -1,0 +1,133 @@
+"""The denoiser guide (ppmrecon/model/guide.py): prior logits, consistency, checkpoint, CLI."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from ppmrecon import buffers as B
+from ppmrecon.model import checkpoint as C
+from ppmrecon.model.cli import main as denoise_main
+from ppmrecon.model.combine import combine, term_bounds
+from ppmrecon.model.features import FeatureConfig
+from ppmrecon.model.guard import DEFAULT_ON
+from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig, guide_planes, oidn_image, prior_logits
+from ppmrecon.model.infer import buffer_guide, denoise
+from ppmrecon.model.kpn import build
+from tests.conftest import make_buffer
+
+
+def _terms(y: torch.Tensor, z: torch.Tensor, k: int) -> torch.Tensor:
+    """Every term t^j_{c,i} of Eq. 6 in the logit layout, (B, 4 K^2, 3, H, W), by brute force."""
+    b, _, h, w = y.shape
+    r = k // 2
+    yp = torch.nn.functional.pad(y, (r, r, r, r), mode="replicate")
+    zp = torch.nn.functional.pad(z.reshape(b, 12, h, w), (r, r, r, r), mode="replicate").view(b, 4, 3, h + 2 * r, w + 2 * r)
+    out = []
+    for a in range(k):
+        for c in range(k):
+            for j in range(4):
+                out.append(yp[..., a:a + h, c:c + w] + z[:, j] - zp[:, j, :, a:a + h, c:c + w])
+    return torch.stack(out, 1)
+
+
+def test_prior_logits_are_the_gaussian_log_likelihood_of_each_term():
+    torch.manual_seed(0)
+    y, z = torch.rand(2, 3, 6, 7), torch.rand(2, 4, 3, 6, 7)
+    g = torch.rand(2, 3, 6, 7)
+    sigma = 0.1 + torch.rand(2, 1, 6, 7)
+    logits = prior_logits(y, z, torch.cat([g, sigma], 1), 3)
+    t = _terms(y, z, 3)
+    expected = -(t - g.unsqueeze(1)).square().mean(2) / (2 * sigma.square())
+    torch.testing.assert_close(logits, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_sharp_guide_selects_the_term_closest_to_it():
+    torch.manual_seed(1)
+    y, z = torch.rand(1, 3, 5, 5), torch.rand(1, 4, 3, 5, 5)
+    t = _terms(y, z, 3)
+    g = t[:, 17]                                 # one of the terms at every pixel
+    planes = torch.cat([g, torch.full((1, 1, 5, 5), 1e-4)], 1)
+    out = combine(y, z, prior_logits(y, z, planes, 3))
+    torch.testing.assert_close(out, g, rtol=1e-5, atol=1e-5)
+
+
+def test_any_guide_stays_within_the_terms_and_converged_inputs_ignore_it():
+    torch.manual_seed(2)
+    y, z = torch.rand(1, 3, 8, 9), torch.rand(1, 4, 3, 8, 9)
+    wild = torch.cat([torch.rand(1, 3, 8, 9) * 1e4, torch.full((1, 1, 8, 9), 0.01)], 1)   # a guide far off
+    out = combine(y, z, prior_logits(y, z, wild, 5))
+    lo, hi = term_bounds(y, z, 5)
+    assert bool((out >= lo).all() and (out <= hi).all())
+    x = torch.rand(1, 3, 8, 9)                   # converged inputs: every term is x, whatever the guide
+    same = combine(x, x.unsqueeze(1).expand(1, 4, 3, 8, 9).contiguous(), prior_logits(x, x.unsqueeze(1).expand(1, 4, 3, 8, 9), wild, 5))
+    torch.testing.assert_close(same, x, rtol=1e-6, atol=1e-6)
+
+
+def test_guide_planes_are_oidn_of_the_source_with_a_relative_tolerance():
+    buf = make_buffer(16, 20, seed=4)
+    planes = guide_planes(buf.estimates, buf.albedo, buf.normal, DEFAULT_GUIDE, scale=2.0, floor=1e-3)
+    g = oidn_image(buf.estimates[4], buf.albedo, buf.normal)
+    assert planes.shape == (1, 4, 16, 20)
+    np.testing.assert_allclose(planes[0, :3].permute(1, 2, 0).numpy(), g)
+    np.testing.assert_allclose(planes[0, 3].numpy(), 0.03 * g.mean(-1) + 2e-3, rtol=1e-5)
+    assert (g >= 0).all() and np.isfinite(g).all()
+
+
+def test_the_guide_is_scale_free():
+    buf = make_buffer(16, 16, seed=5)
+    bright = replace(buf, estimates=buf.estimates * 1000.0, variances=buf.variances * 1e6)
+    model = build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON, DEFAULT_GUIDE)
+    a = denoise(buf, model, tile=None).rgb
+    b = denoise(bright, model, tile=None).rgb
+    np.testing.assert_allclose(b / 1000.0, a, rtol=2e-2, atol=1e-4)   # OIDN itself is only ~scale-equivariant
+
+
+def test_an_untrained_guided_model_is_the_guide_alone_and_tiles_agree():
+    buf = make_buffer(40, 36, seed=6)
+    model = build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON, DEFAULT_GUIDE)
+    assert float(model.head.weight.detach().abs().sum()) == 0.0
+    whole = denoise(buf, model, tile=64).rgb
+    tiled = denoise(buf, model, tile=16).rgb
+    np.testing.assert_allclose(tiled, whole, rtol=1e-5, atol=1e-5)
+    off = denoise(buf, model, guide=GuideConfig()).rgb
+    assert not np.allclose(off, whole)           # the guide changes the weights
+
+
+def test_guide_settings_are_validated():
+    with pytest.raises(ValueError, match="beta"):
+        GuideConfig(enabled=True, beta=0)
+    with pytest.raises(ValueError, match="source"):
+        GuideConfig(source=5)
+    with pytest.raises(ValueError, match="unknown guide"):
+        GuideConfig.from_dict({"sharpness": 1})
+
+
+def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
+    model = build("tiny", FeatureConfig(), DEFAULT_ON, replace(DEFAULT_GUIDE, beta=0.05))
+    C.save_checkpoint(tmp_path / "m.pt", model)
+    assert C.load_checkpoint(tmp_path / "m.pt").model.guide == replace(DEFAULT_GUIDE, beta=0.05)
+    payload = torch.load(tmp_path / "m.pt", weights_only=True)
+    del payload["guide"]
+    payload["format_version"] = 2
+    torch.save(payload, tmp_path / "old.pt")
+    assert C.load_checkpoint(tmp_path / "old.pt").model.guide == GuideConfig()
+
+
+def test_cli_guide_switch_and_header(tmp_path):
+    buf = make_buffer(24, 24, seed=7)
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q",
+                         "-o", str(tmp_path / "on.exr")]) == 0
+    assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide", "off",
+                         "-o", str(tmp_path / "off.exr")]) == 0
+    on, h_on = B.read_rgb(tmp_path / "on.exr")
+    off, h_off = B.read_rgb(tmp_path / "off.exr")
+    assert h_on["ppmrecon.guide"].startswith("oidn(z4)") and h_off["ppmrecon.guide"] == "off"
+    assert not np.allclose(on, off)
+    planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
+    assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())
