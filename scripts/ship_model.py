@@ -81,6 +81,9 @@ def main() -> None:
         f"| inputs | {ckpt.model.features.n_channels} channels (5 estimates, 5 variances, albedo, normal, depth; "
         f"optional features {ckpt.model.features.to_dict()}), SPPM buffer files |",
         f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; applied in training as at inference) |",
+        f"| denoiser guide | {ckpt.model.guide.to_dict()} (ppmrecon/model/guide.py: OIDN of ~z^{ckpt.model.guide.source} "
+        "sets prior logits; the network's logits are a correction to them, in training as at inference) |"
+        if ckpt.model.guide.enabled else "| denoiser guide | off |",
         f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
         f"({', '.join(families)}), {n_train} train / {n_val} validation (split by scene), "
         f"{cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
@@ -104,6 +107,10 @@ def main() -> None:
         "![validation curve](default_validation.png)", "",
         "| epoch | train loss (Eq. 8) | validation relMSE | best single input |", "|---|---|---|---|",
     ]
+    alone = args.run / "guide_alone.json"
+    if alone.is_file():
+        a = json.loads(alone.read_text())["val"]
+        lines.append(f"| 0 (the guide alone, untrained head) | - | {a['output']:.4f} | {a['best_single']:.4f} |")
     sets = []
     for h in history:
         lines.append(f"| {h['epoch']} | {h['loss']:.4f} | {h['val']['output']:.4f} | {h['val']['best_single']:.4f} |")

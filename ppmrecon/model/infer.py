@@ -6,7 +6,10 @@ with the weights predicted by the network (see :mod:`ppmrecon.model.combine`).
 With the model's firefly guard (:mod:`.guard`; on when its checkpoint says so, or when
 asked), the inputs are guarded first, on the whole image, and each tile's combination is
 clamped into the band of its five inputs; without it, the combination is clamped at 0
-(radiance is nonnegative). Both keep the result consistent. The image is processed
+(radiance is nonnegative). Both keep the result consistent. With the model's denoiser
+guide (:mod:`.guide`; likewise on when asked), OIDN's image of the guarded ~z^4 is made
+once on the whole image and every tile's logits are the network's plus the guide's prior
+(:func:`.guide.prior_logits`): only the weights change, so consistency does not. The image is processed
 in square tiles. Each tile is extended by a halo of
 ``receptive radius + K//2`` pixels (clipped at the image border), so the logits and the
 window of every kept pixel see exactly what they would see on the whole image: tiled

@@ -48,6 +48,8 @@ SELECT = ("relmse", "ratio")
 MODEL = "model.pt"
 BEST = "best.pt"
 HISTORY = "history.json"
+#: Validation of the untrained guided model (the guide alone), written before epoch 1.
+GUIDE_ALONE = "guide_alone.json"
 
 
 @dataclass
@@ -241,6 +243,8 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
         # the guide alone (the zero-initialised head) is a candidate too: best.pt is
         # never worse on validation than the model one starts from
         val0 = _validate(model, val_samples, dev, dist)
+        if main and val0:
+            write_json(out / GUIDE_ALONE, {"val": val0, "val_images": val_ids})
         if val0 and val0[key] < best:
             best = val0[key]
             if main:

@@ -1,0 +1,195 @@
+"""Reconstruction ablation at equal passes (issue 12): what the denoiser guide, its
+tolerance, the anchor and the trained network each bring, against the best single input.
+
+    .venv/bin/python benchmarks/bench_guide.py --scenes ../shared/scenes \
+        [--data data/v2_cpu] [--model NAME=CKPT ...] [--passes 16,64,256] [--out benchmarks/results/guide]
+
+Renders: the three literature scenes and the two built-in caustic scenes at width 128,
+65536 photons per pass, five-chain SPPM at each N (seed 7; cached in ``<out>/cache``),
+scored against the equal-time study's references (single-bandwidth SPPM, 1024 passes,
+two seeds, cached in ``--ref-cache``, rendered there when missing). ``--data``: also every
+validation image of a generated data set (never trained on) against its own reference.
+
+Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
+``kpn`` = a checkpoint as trained (``--model``, repeatable); ``+guide`` = the same with the
+guide forced on; ``guide b=B`` = the guide alone (an untrained guided model: zero head)
+with tolerance beta B; ``noanchor`` = without the guard's low-frequency anchor;
+``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
+Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
+geometric mean, the worst, and how many images are worse than their best input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from bench_quality import LITERATURE, oidn  # noqa: E402
+from study import BUILTIN, references, renderer  # noqa: E402
+
+from ppmrecon import buffers as B  # noqa: E402
+from ppmrecon.fileio import write_json, write_text  # noqa: E402
+from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
+
+WIDTH, PHOTONS, REF_PASSES, SEED = 128, 65536, 1024, 7
+BETAS = (0.01, 0.03, 0.1)
+
+
+def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
+    path = cache / f"{key}_{WIDTH}_{passes}x{PHOTONS}_s{SEED}_multi.exr"
+    if not path.exists():
+        t = time.perf_counter()
+        res = renderer(loaded, key, "multi", "sppm", PHOTONS, SEED, passes=passes).run()
+        B.write_buffers(path, res.buffer_file())
+        print(f"{key}: N = {passes} in {time.perf_counter() - t:.0f}s", flush=True)
+    return B.read_buffers(path)
+
+
+def variants(models: dict) -> dict:
+    """name -> function(buffer file) -> (H, W, 3)."""
+    from ppmrecon.model.checkpoint import load_checkpoint
+    from ppmrecon.model.features import FeatureConfig
+    from ppmrecon.model.guard import DEFAULT_ON
+    from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig
+    from ppmrecon.model.infer import denoise
+    from ppmrecon.model.kpn import build
+
+    out = {"oidn(y)": lambda buf: oidn(buf, 0), "oidn(z4)": lambda buf: oidn(buf, 4)}
+    for name, path in models.items():
+        net = load_checkpoint(path).model
+        guard = net.guard if net.guard.enabled else DEFAULT_ON
+        out[name] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard).rgb
+        if not net.guide.enabled:
+            out[f"{name} +guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
+                                                                               guide=DEFAULT_GUIDE).rgb
+        else:
+            out[f"{name} -guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
+                                                                               guide=GuideConfig()).rgb
+        out[f"{name} noanchor"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=replace(guard, anchor=0)).rgb
+    alone = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, DEFAULT_GUIDE)
+    for beta in BETAS:
+        g = replace(DEFAULT_GUIDE, beta=beta)
+        out[f"guide b={beta:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    out["guide b=0.03 noanchor"] = lambda buf: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0)).rgb
+    return out
+
+
+def score_image(buf: B.BufferFile, ref: np.ndarray, fns: dict) -> dict:
+    singles = [relmse(e, ref) for e in buf.estimates]
+    singles_8 = [relmse_blocks(e, ref) for e in buf.estimates]
+    best, best8 = min(singles), min(singles_8)
+    row = {"best_single": best, "best_single_8x8": best8,
+           "best_single_name": B.ESTIMATES[int(np.argmin(singles))], "variants": {}}
+    for name, fn in fns.items():
+        t = time.perf_counter()
+        img = fn(buf)
+        row["variants"][name] = {"relmse": relmse(img, ref), "relmse_8x8": relmse_blocks(img, ref),
+                                 "ratio": relmse(img, ref) / best, "ratio_8x8": relmse_blocks(img, ref) / best8,
+                                 "seconds": time.perf_counter() - t}
+    return row
+
+
+def summary(rows: list[dict], names: list[str]) -> list[dict]:
+    out = []
+    for name in names:
+        r = np.array([row["variants"][name]["ratio"] for row in rows])
+        b = np.array([row["variants"][name]["ratio_8x8"] for row in rows])
+        out.append({"variant": name, "images": len(rows), "geomean": float(np.exp(np.log(r).mean())),
+                    "worst": float(r.max()), "geomean_8x8": float(np.exp(np.log(b).mean())),
+                    "worst_8x8": float(b.max()), "worse_than_best": int((r > 1).sum()),
+                    "at_most_half": int((r <= 0.5).sum()), "block_not_worse": int((b <= 1).sum())})
+    return out
+
+
+def table(summ: list[dict]) -> list[str]:
+    lines = ["| variant | images | relMSE / best: geomean | worst | worse than best | <= 0.5x | "
+             "8x8 / best: geomean | worst | 8x8 <= best |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for s in summ:
+        lines.append(f"| {s['variant']} | {s['images']} | {s['geomean']:.3f} | {s['worst']:.2f} | "
+                     f"{s['worse_than_best']} | {s['at_most_half']} | {s['geomean_8x8']:.3f} | "
+                     f"{s['worst_8x8']:.2f} | {s['block_not_worse']} |")
+    return lines
+
+
+def per_image_table(rows: list[dict], names: list[str]) -> list[str]:
+    lines = ["| image | best input | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+    for row in rows:
+        cells = [f"{row['variants'][n]['ratio']:.2f} / {row['variants'][n]['ratio_8x8']:.2f}" for n in names]
+        lines.append(f"| {row['image']} | {row['best_single_name']} {row['best_single']:.3g} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", type=Path, required=True, help="folder of the literature scenes (../shared/scenes)")
+    ap.add_argument("--data", type=Path, help="a generated data set: score its validation images too")
+    ap.add_argument("--model", action="append", default=[], metavar="NAME=CKPT",
+                    help="a checkpoint to score (repeat; default: the shipped default as 'default')")
+    ap.add_argument("--passes", default="16,64,256", help="pass counts of the scene renders")
+    ap.add_argument("--ref-cache", type=Path, default=ROOT / "docs" / "cache",
+                    help="the equal-time study's reference cache (default: docs/cache)")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "guide")
+    args = ap.parse_args()
+    models = dict(m.split("=", 1) for m in args.model) or {"default": ROOT / "ppmrecon/data/models/default.pt"}
+    (args.out / "cache").mkdir(parents=True, exist_ok=True)
+    args.ref_cache.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    fns = variants(models)
+    names = list(fns)
+    scenes = {k: args.scenes / v for k, v in LITERATURE.items()}
+    scenes.update({k: k for k in BUILTIN})
+    refs = references(scenes, WIDTH, PHOTONS, REF_PASSES, args.ref_cache)
+    scene_rows = []
+    for key, (loaded, pair) in refs.items():
+        ref = 0.5 * (pair[0] + pair[1])
+        for n in (int(p) for p in args.passes.split(",")):
+            row = score_image(rendered(loaded, key, n, args.out / "cache"), ref, fns)
+            scene_rows.append({"image": f"{key} N={n}", "scene": key, "passes": n, **row})
+            print(f"{key} N={n}: " + ", ".join(f"{k} {v['ratio']:.2f}" for k, v in row["variants"].items()), flush=True)
+    val_rows = []
+    if args.data:
+        from ppmrecon.train.datagen import REFERENCE, load_manifest
+
+        for scene in load_manifest(args.data)["scenes"]:
+            if scene.get("split") != "val" or not scene.get("reference"):
+                continue
+            ref, _ = B.read_rgb(args.data / scene["id"] / REFERENCE)
+            for item in scene.get("inputs", []):
+                buf = B.read_buffers(args.data / scene["id"] / item["file"])
+                row = score_image(buf, ref, fns)
+                val_rows.append({"image": f"{scene['id']} {item['file']}", "scene": scene["id"],
+                                 "passes": item["passes"], **row})
+        print(f"validation: {len(val_rows)} images", flush=True)
+    report = {"models": {k: str(v) for k, v in models.items()}, "scenes": scene_rows, "validation": val_rows,
+              "summary_scenes": summary(scene_rows, names),
+              "summary_validation": summary(val_rows, names) if val_rows else [],
+              "minutes": (time.perf_counter() - t0) / 60}
+    write_json(args.out / "guide.json", report)
+    cmd = "benchmarks/bench_guide.py --scenes ../shared/scenes" + (f" --data {args.data}" if args.data else "") \
+        + "".join(f" --model {k}={v}" for k, v in models.items())
+    lines = ["# Reconstruction ablation at equal passes (issue 12)", "",
+             f"Generated by `{cmd}` in {report['minutes']:.1f} min. Width {WIDTH}, {PHOTONS} photons/pass, "
+             f"five-chain SPPM, seed {SEED}; references: single-bandwidth SPPM, {REF_PASSES} passes x 2 seeds "
+             "(their own noise is in every figure: at N = 256 the ratios are compressed towards 1). "
+             "Ratios: relMSE (and 8x8-block relMSE) over the best single input of the same render. "
+             "Issue 12 targets: <= 0.5x, and 8x8 <= 1x, on every image.", "",
+             "## Literature scenes (never trained on) and built-in caustic scenes", "", *table(report["summary_scenes"])]
+    if val_rows:
+        lines += ["", f"## Validation images of `{args.data}` (every N)", "", *table(report["summary_validation"])]
+    lines += ["", "## Per image (relMSE / 8x8 ratio to the best input)", "", *per_image_table(scene_rows, names)]
+    write_text(args.out / "guide.md", "\n".join(lines) + "\n")
+    print(f"wrote {args.out / 'guide.md'}")
+
+
+if __name__ == "__main__":
+    main()
