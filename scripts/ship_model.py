@@ -123,7 +123,7 @@ def main() -> None:
                   + "; `best.pt` compares only epochs validated on the same images."]
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
-              "benchmarks/results/quality.md, curves.md, guard.md, anchor.md."]
+              "benchmarks/results/guide/guide.md, quality.md, curves.md, guard.md, anchor.md."]
     DEFAULT_MODEL.with_name("default.md").write_text("\n".join(lines) + "\n")
     print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
 
