@@ -131,3 +131,20 @@ def test_cli_guide_switch_and_header(tmp_path):
     assert not np.allclose(on, off)
     planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
     assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())
+
+
+def test_a_wrong_guide_cannot_stop_convergence():
+    """Noise ~ 1/sqrt(N) on all five inputs, a guide that is wrong by 2x and sharp: the
+    guided combination, anchor and band still converge to the truth (Appendix A)."""
+    from ppmrecon.model.guard import finish
+
+    gen = torch.Generator().manual_seed(0)
+    x = 0.2 + torch.rand(3, 20, 20, generator=gen)
+    wrong = torch.cat([2.0 * x, torch.full((1, 20, 20), 1e-3)], 0)[None]
+    errors = []
+    for n in (16, 256, 4096, 65536, 2 ** 20):
+        est = (x * (1 + torch.randn(5, 3, 20, 20, generator=gen) * 1.2 / n ** 0.5)).clamp(min=0)
+        y, z = est[:1], est[1:][None]
+        out = finish(combine(y, z, prior_logits(y, z, wrong, 5)), y, z, DEFAULT_ON)
+        errors.append(float((out[0] - x).abs().max()))
+    assert errors[-1] < 0.01 and errors[-1] < errors[-2] < errors[-3] < errors[-4], errors
