@@ -43,6 +43,7 @@ from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
 
 WIDTH, PHOTONS, REF_PASSES, SEED = 128, 65536, 1024, 7
 BETAS = (0.01, 0.03, 0.1)
+CROSS = (0.0, 2.0, 4.0)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -81,6 +82,9 @@ def variants(models: dict) -> dict:
         g = replace(DEFAULT_GUIDE, beta=beta)
         out[f"guide b={beta:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
     out["guide b=0.03 noanchor"] = lambda buf: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0)).rgb
+    for cross in CROSS:
+        g = replace(DEFAULT_GUIDE, cross=cross)
+        out[f"guide cross={cross:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
     return out
 
 

@@ -69,7 +69,7 @@ def test_any_guide_stays_within_the_terms_and_converged_inputs_ignore_it():
 
 def test_guide_planes_are_oidn_of_the_source_with_a_relative_tolerance():
     buf = make_buffer(16, 20, seed=4)
-    planes = guide_planes(buf.estimates, buf.albedo, buf.normal, DEFAULT_GUIDE, scale=2.0, floor=1e-3)
+    planes = guide_planes(buf.estimates, buf.albedo, buf.normal, GuideConfig(enabled=True), scale=2.0, floor=1e-3)
     g = oidn_image(buf.estimates[4], buf.albedo, buf.normal)
     assert planes.shape == (1, 4, 16, 20)
     np.testing.assert_allclose(planes[0, :3].permute(1, 2, 0).numpy(), g)
@@ -148,3 +148,31 @@ def test_a_wrong_guide_cannot_stop_convergence():
         out = finish(combine(y, z, prior_logits(y, z, wrong, 5)), y, z, DEFAULT_ON)
         errors.append(float((out[0] - x).abs().max()))
     assert errors[-1] < 0.01 and errors[-1] < errors[-2] < errors[-3] < errors[-4], errors
+
+
+def test_where_the_two_hit_points_disagree_the_guide_is_their_geometric_mean():
+    buf = make_buffer(16, 16, seed=8)
+    est = buf.estimates.copy()
+    est[0] = 1.0 + 0.0 * est[0]                  # ~y flat at 1, ~z^4 flat at 1 with a patch at 10
+    est[4] = 1.0 + 0.0 * est[4]
+    est[4, 4:12, 4:12] = 10.0
+    buf = replace(buf, estimates=est)
+    cross = guide_planes(buf.estimates, buf.albedo, buf.normal, DEFAULT_GUIDE, scale=1.0, floor=1e-3)[0, :3]
+    plain = guide_planes(buf.estimates, buf.albedo, buf.normal, GuideConfig(enabled=True), scale=1.0, floor=1e-3)[0, :3]
+    gy = torch.from_numpy(oidn_image(buf.estimates[0], buf.albedo, buf.normal)).permute(2, 0, 1)
+    inside = (slice(None), slice(6, 10), slice(6, 10))
+    torch.testing.assert_close(cross[inside], (plain[inside] * gy[inside]).sqrt(), rtol=1e-5, atol=1e-5)
+    assert float(cross[inside].mean()) < 0.5 * float(plain[inside].mean())
+    torch.testing.assert_close(cross[:, :2, :2], plain[:, :2, :2])   # where they agree: OIDN of ~z^4
+
+
+def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
+    from ppmrecon.model.guide import despike
+
+    y = torch.full((3, 9, 9), 0.5)
+    z = torch.full((3, 9, 9), 0.5)
+    z[:, 4, 4] = 20.0                            # in ~z^4 only: removed
+    z[:, 1, 1] = 20.0                            # ~y sees it too, next door: kept
+    y[:, 1, 2] = 20.0
+    out = despike(z, y, eps=1e-3)
+    assert float(out[:, 4, 4].max()) == 0.5 and float(out[:, 1, 1].min()) == 20.0

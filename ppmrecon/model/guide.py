@@ -21,10 +21,23 @@ into the consistent range of Eq. 6. Where the terms agree (many passes) the outp
 pinned to them whatever ``g`` says, so OIDN's own bias cannot survive convergence;
 where they disagree (few passes) the denoiser chooses among them.
 
-``beta = 0.03``: the best of 0.03 and 0.1 (and better than OIDN on ~z^3) on 14 renders
-of the built-in caustic scenes and the three literature scenes at N = 16, 64, 256
-(geometric mean of relMSE over the best single input 0.47 with the guard's anchor,
-0.50 at 0.1); the guide of ~z^4 beat that of ~z^3 (0.47 vs 0.47-0.50, lower 8x8 error).
+Two robustness rules, because the guide is only as good as OIDN's view of one estimate:
+
+* **B-only spikes** (:func:`despike`): a pixel of ~z^4 far above its own 3 x 3 median and
+  above every ~y of its window (a light seen through a rare specular chain from hit point
+  B) is replaced by that median before OIDN, which would otherwise keep it.
+* **A and B disagree** (``cross``): OIDN also denoises ~y (hit point A); where the two
+  guides differ by more than ``cross`` x, the guide is their geometric mean. On
+  ``water_caustic`` (N = 128, study seed 21) a sub-pixel sparkle sat in every ~z^j of the
+  pixel next to the true one; with the guide of ~z^4 alone the output took it (relMSE
+  0.0145, 78% of it from five pixels), with ``cross = 2`` 0.0044.
+
+Measured with ``benchmarks/bench_guide.py`` (``benchmarks/results/guide/guide.md``): on 15
+renders of the three literature scenes and the two built-in caustic scenes (N = 16, 64,
+256) and 56 validation images of ``data/v2_cpu`` (N = 4..256), the geometric mean of
+relMSE over the best single input is 0.488 / 0.606 at ``beta = 0.03`` (0.488 / 0.606 at
+0.01, 0.518 / 0.635 at 0.1) and 0.473 / 0.577 with ``cross = 2`` (0.480 / 0.589 at 4); no
+image is worse than its best input with any of them.
 """
 
 from __future__ import annotations
@@ -42,6 +55,8 @@ from .combine import N_CORRELATED, N_RGB, _padded_differences
 
 #: Estimate the guide denoises: ~z^4, the widest bandwidth (lowest variance) of the five.
 GUIDE_SOURCE = 4
+#: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
+SPIKE_RATIO = 4.0
 
 
 @dataclass(frozen=True)
@@ -51,6 +66,9 @@ class GuideConfig:
     enabled: bool = False
     beta: float = 0.03           # relative tolerance of the prior: sigma = beta * gbar + floor * s
     source: int = GUIDE_SOURCE   # which estimate OIDN denoises (0 = ~y, 1..4 = ~z^j)
+    #: > 1: also denoise ~y (its own hit point A) and, where the two guides differ by more
+    #: than this factor, use their geometric mean; 0 = off
+    cross: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -58,6 +76,9 @@ class GuideConfig:
         if isinstance(self.beta, bool) or not isinstance(self.beta, (int, float)) \
                 or not math.isfinite(self.beta) or self.beta <= 0:
             raise ValueError(f"guide setting 'beta' must be a number > 0, got {self.beta!r}")
+        if isinstance(self.cross, bool) or not isinstance(self.cross, (int, float)) \
+                or not (self.cross == 0 or self.cross > 1):
+            raise ValueError(f"guide setting 'cross' must be 0 (off) or a factor > 1, got {self.cross!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -73,7 +94,7 @@ class GuideConfig:
 
 
 #: The guide on, with the measured defaults (see the module docstring).
-DEFAULT_GUIDE = GuideConfig(enabled=True)
+DEFAULT_GUIDE = GuideConfig(enabled=True, cross=2.0)
 
 
 def _pyoidn():
@@ -94,12 +115,43 @@ def oidn_image(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
 
 
+def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SPIKE_RATIO) -> torch.Tensor:
+    """The guide's input without the spikes that hit point B alone saw, (3, H, W).
+
+    source, y (3, H, W): the estimate OIDN will denoise and ~y. A pixel is a spike when its
+    RGB mean exceeds ``ratio`` x (the 3 x 3 median of the source + eps) *and* ``ratio`` x
+    (the largest ~y of its 3 x 3 window + eps): ~y gathers at its own hit point A, so a
+    light seen through a rare specular chain from B shows in every ~z^j (and so in all
+    their terms but i = c) while ~y around it stays low; OIDN keeps such a lone bright
+    pixel, and the guide would then pick the spike. Spikes are replaced by the source's
+    3 x 3 median. Only the weights depend on the guide, so this costs no consistency.
+    """
+    from .guard import median3x3
+
+    lum, ylum = source.mean(0), y.mean(0)
+    med = median3x3(source)
+    ymax = torch.nn.functional.max_pool2d(ylum[None, None], 3, 1, 1)[0, 0]
+    spike = (lum > ratio * (med.mean(0) + eps)) & (lum > ratio * (ymax + eps))
+    return torch.where(spike, med, source)
+
+
 def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
                  scale: float, floor: float) -> torch.Tensor:
     """The guide and its tolerance for a whole image, (1, 4, H, W): R, G, B of ``g`` and
     ``sigma = beta gbar + floor * scale``. ``estimates`` (5, H, W, 3) are the (guarded)
-    inputs; ``scale`` the image's radiance scale. Whole images only: OIDN has no halo."""
-    g = torch.from_numpy(oidn_image(estimates[cfg.source], albedo, normal)).permute(2, 0, 1)
+    inputs; ``scale`` the image's radiance scale. OIDN denoises the source estimate with
+    its B-only spikes removed (:func:`despike`). Whole images only: OIDN has no halo."""
+    est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
+    source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
+    g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal)).permute(2, 0, 1)
+    if cfg.cross and cfg.source:
+        # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
+        # a rare path); neither guide is to be trusted, their geometric mean lies between
+        gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal)).permute(2, 0, 1)
+        eps = floor * float(scale)
+        a, b = g.mean(0, keepdim=True) + eps, gy.mean(0, keepdim=True) + eps
+        apart = torch.maximum(a / b, b / a) > cfg.cross
+        g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
 
