@@ -112,14 +112,18 @@ def test_shipped_model_with_guard_is_no_worse_than_the_best_input(shipped, which
 
 @pytest.mark.parametrize("which", ["y", "z", "both"])
 def test_without_the_guard_the_same_fireflies_do_damage(shipped, which):
-    """The failure the guard fixes (so the test above can fail): issue 12."""
+    """The failure the guard fixes (so the test above can fail): issue 12. The denoiser
+    guide is off too: its spike rule alone already keeps z-only fireflies out."""
+    from ppmrecon.model.guide import GuideConfig
+
     buf, clean = synthetic()
     buf = with_fireflies(buf, 1e4, which)
-    out = denoise(buf, shipped, guard=GuardConfig(), precision="float32").rgb
-    assert excess(out, buf, clean).max() > TOL
+    out = denoise(buf, shipped, guard=GuardConfig(), guide=GuideConfig(), precision="float32").rgb
     at = np.array([out[r, c].mean() / clean[r, c].mean() for r, c in FIREFLIES])
     if which == "both":                 # present in every term of Eq. 6: passes straight through
-        assert np.all(at > 100)
+        assert np.all(at > 100)         # (no excess over the inputs: they all carry it there)
+    else:
+        assert excess(out, buf, clean).max() > TOL
 
 
 def test_guard_changes_nothing_without_fireflies_but_the_band(shipped):
@@ -389,14 +393,24 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
-    """--guard off: exactly the pipeline before issue 12 (Eq. 6, then the clamp at 0)."""
+    """--guard off --guide off: exactly the pipeline before issue 12 (Eq. 6, then the clamp
+    at 0); --guard off with the guide: Eq. 6 on the network's logits plus the prior."""
+    from ppmrecon.model.infer import buffer_guide
+    from ppmrecon.model.guide import GuideConfig, prior_logits
+
     buf, _ = synthetic(seed=1)
     buf = with_fireflies(buf, 1e3, "z")
-    out = denoise(buf, shipped, precision="float32", guard=GuardConfig()).rgb
+    out = denoise(buf, shipped, precision="float32", guard=GuardConfig(), guide=GuideConfig()).rgb
     inp = from_buffer(buf, shipped.features)
     with torch.no_grad():
-        ref = combine(inp.y, inp.z, shipped(inp.features)).clamp(min=0)[0].permute(1, 2, 0).numpy()
-    np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+        logits = shipped(inp.features)
+        ref = combine(inp.y, inp.z, logits).clamp(min=0)[0].permute(1, 2, 0).numpy()
+        np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
+        assert shipped.guide.enabled
+        guided = denoise(buf, shipped, precision="float32", guard=GuardConfig()).rgb
+        prior = prior_logits(inp.y, inp.z, buffer_guide(buf, shipped.guide, GuardConfig()), shipped.window)
+        ref = combine(inp.y, inp.z, logits + prior).clamp(min=0)[0].permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(guided, ref, rtol=1e-4, atol=1e-5)
 
 
 # ----------------------------------------------------------------------- features
