@@ -127,7 +127,7 @@ def test_cli_guide_switch_and_header(tmp_path):
                          "-o", str(tmp_path / "off.exr")]) == 0
     on, h_on = B.read_rgb(tmp_path / "on.exr")
     off, h_off = B.read_rgb(tmp_path / "off.exr")
-    assert h_on["ppmrecon.guide"].startswith("oidn(z4)") and h_off["ppmrecon.guide"] == "off"
+    assert h_on["ppmrecon.guide"] == "oidn(z4) beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
     assert not np.allclose(on, off)
     planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
     assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())

@@ -125,23 +125,25 @@ def expand_inputs(items: Sequence[str]) -> list[Path]:
     return expand_paths(items, "buffer file", exclude=lambda p: p.stem.endswith(DENOISED_SUFFIX))
 
 
+def _choice(choice: str, from_model, off, on):
+    """``off``, the model's settings (``model``), or on: the model's if they are on, else ``on``."""
+    if choice == "off":
+        return off
+    if choice == "on":
+        return from_model if from_model.enabled else on
+    return from_model
+
+
 def guard_choice(choice: str, model_guard: GuardConfig) -> GuardConfig:
     """The guard to run with: the model's (``model``), on (the model's settings if it has
     them, else :data:`.guard.DEFAULT_ON`) or off."""
-    if choice == "off":
-        return GuardConfig()
-    if choice == "on":
-        return model_guard if model_guard.enabled else DEFAULT_ON
-    return model_guard
+    return _choice(choice, model_guard, GuardConfig(), DEFAULT_ON)
 
 
 def guide_choice(choice: str, model_guide: GuideConfig) -> GuideConfig:
-    """The denoiser guide to run with, chosen as :func:`guard_choice` chooses the guard."""
-    if choice == "off":
-        return GuideConfig()
-    if choice == "on":
-        return model_guide if model_guide.enabled else DEFAULT_GUIDE
-    return model_guide
+    """The denoiser guide to run with, chosen as :func:`guard_choice` chooses the guard
+    (on without the model's: :data:`.guide.DEFAULT_GUIDE`)."""
+    return _choice(choice, model_guide, GuideConfig(), DEFAULT_GUIDE)
 
 
 def _init_checkpoint(args) -> int:
@@ -236,7 +238,8 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
                    H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0,
-                   H_GUIDE: f"oidn(z{guide.source}) beta={guide.beta:g}" if guide.enabled else "off"})
+                   H_GUIDE: (f"oidn(z{guide.source}) beta={guide.beta:g} cross={guide.cross:g}"
+                             if guide.enabled else "off")})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape

@@ -140,7 +140,8 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     buf = guard_buffer(buf, guard)                      # whole image: medians need no halo
     scales = buffer_scales(buf, model.features)
     from_buffer(buf, model.features, (slice(0, 1), slice(0, 1)), scales)   # header problems fail early
-    planes = buffer_guide(buf, guide, guard) if guide.enabled else None
+    scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
+    planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales, planes)
@@ -151,11 +152,15 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     return _finish(combined, est[0], est[1:], guard)
 
 
-def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> torch.Tensor:
-    """:func:`.guide.guide_planes` of a whole (guarded) buffer file, (1, 4, H, W)."""
-    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
+                 scale: float | None = None) -> torch.Tensor:
+    """:func:`.guide.guide_planes` of a whole (guarded) buffer file, (1, 4, H, W);
+    ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
+    if scale is None:
+        est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+        scale = float(image_scale(est))
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
-    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, float(image_scale(est)), floor)
+    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, scale, floor)
 
 
 def _finish(combined: Denoised, y: torch.Tensor, z: torch.Tensor, guard: GuardConfig) -> Denoised:
