@@ -281,7 +281,11 @@ class Renderer:
             return time.perf_counter()
 
         t0 = clock()
-        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth, s.rr_depth)
+        # With direct light apart at every gather point no gather counts a direct photon
+        # (d = 0): they are not stored, except on pass 1, whose k-NN radii count them.
+        first_bounce = 1 if s.direct == "all" and i > 1 else 0
+        photon_map = trace_photons(self.scene, s.photons, stream_seed(s.seed, i, PHOTONS), s.max_depth, s.rr_depth,
+                                   first_bounce)
         dropped["photons"] += photon_map.nonfinite
         t1 = clock()
         points = self._eye_points(i)

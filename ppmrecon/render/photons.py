@@ -123,10 +123,11 @@ def _emit(scene: mi.Scene, rng: mi.PCG32) -> tuple[_Paths, mi.Bool]:
 @dr.syntax
 def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UInt32,
                    bounces: int, last_depth: mi.UInt32, rr_depth: int,
-                   buf: mi.Float, buf_valid: mi.Bool) -> tuple[mi.Bool, mi.Bool]:
+                   buf: mi.Float, buf_valid: mi.Bool, first_depth: mi.UInt32) -> tuple[mi.Bool, mi.Bool]:
     """Trace up to ``bounces`` bounces of every alive path, storing the photon of bounce
-    d = depth0 + step in slot ``step * lanes + lane``. Stops a path after bounce index
-    ``last_depth`` (the last one that may be stored). Returns (alive, went non-finite)."""
+    d = depth0 + step (if d >= ``first_depth``) in slot ``step * lanes + lane``. Stops a
+    path after bounce index ``last_depth`` (the last one that may be stored). Returns
+    (alive, went non-finite)."""
     # Opaque: the number of surviving paths changes every segment and pass, and a
     # literal would compile a new kernel each time.
     lanes = dr.opaque(mi.UInt32, dr.width(alive))
@@ -143,7 +144,7 @@ def _trace_segment(scene: mi.Scene, paths: _Paths, alive: mi.Bool, depth0: mi.UI
         bsdf = si.bsdf(ray)
 
         # Store at every surface with a non-delta (diffuse or glossy) component.
-        store = alive & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        store = alive & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth) & (depth >= first_depth)
         n_oriented = dr.select(dr.dot(si.n, ray.d) < 0.0, si.n, -si.n)
         slot = step * lanes + lane
         dr.scatter(buf, make_record(si.p, ray.d, n_oriented, beta, mi.Float(depth)), slot, store)
@@ -183,10 +184,12 @@ def _pack(chunks: list[mi.ArrayXf]) -> mi.Float:
 
 
 def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
-                  rr_depth: int = RR_DEPTH) -> PhotonMap:
+                  rr_depth: int = RR_DEPTH, first_bounce: int = 0) -> PhotonMap:
     """Emit ``n_photons`` photons with random stream ``seed`` and return the photon map
     of every stored bounce that can still be part of a path of at most ``max_depth``
-    segments (-1: unbounded)."""
+    segments (-1: unbounded). ``first_bounce`` = 1 leaves out the direct photons (d = 0)
+    where no gather point counts them (direct light estimated apart everywhere): the
+    paths, and so every other photon, stay the same."""
     max_bounces = None if max_depth < 0 else max_depth - 1   # storable bounce indices
     # Bounce index after which no photon may be stored (the largest UInt32: never).
     last_depth = mi.UInt32(0xFFFFFFFF if max_bounces is None else max(max_bounces - 1, 0))
@@ -202,7 +205,7 @@ def trace_photons(scene: mi.Scene, n_photons: int, seed: int, max_depth: int,
         # Only the valid flags need clearing: compress reads the records nowhere else.
         buf, buf_valid = dr.empty(mi.Float, size * RECORD), dr.zeros(mi.Bool, size)
         alive, bad = _trace_segment(scene, paths, alive, dr.opaque(mi.UInt32, depth0), bounces, last_depth,
-                                    rr_depth, buf, buf_valid)
+                                    rr_depth, buf, buf_valid, dr.opaque(mi.UInt32, first_bounce))
         dr.eval(buf, buf_valid, alive, bad, paths.ray, paths.beta, paths.rng)
         nonfinite += int(dr.count(bad)[0]) if lanes else 0
         index = dr.compress(buf_valid)
