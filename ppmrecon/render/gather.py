@@ -42,8 +42,8 @@ is evaluated once, towards the normal, and scaled by each photon's cos_o, which 
 bucket's direct photons without visiting them (the grid keeps them last). Where every
 non-delta BSDF of the scene is Lambertian, the loop holds no BSDF call at all.
 
-The search is one Dr.Jit symbolic loop whose every step visits one photon and/or moves
-to the next cell of the search box (cells the search sphere misses are empty steps): one
+The search is one Dr.Jit symbolic loop whose every step visits up to two photons of one
+cell and/or moves to the next cell of the search box (cells the search sphere misses are empty steps): one
 kernel over all gather points, compiled on the first pass and reused afterwards (every
 per-pass number enters as an opaque array). Each gather point visits its photons in
 the order of the sorted grid, cell by cell, so every sum is bit for bit that of a
@@ -210,13 +210,16 @@ def gather(gp: GatherPoints, radii: list[mi.Float], grid: PhotonGrid, kernel: st
         return k, end
 
     def body(c, cell, k, end, flux, count, dropped):
-        # One loop over steps of one photon and/or one cell rather than a photon loop
+        # One loop over steps of photons and/or one cell rather than a photon loop
         # nested in a cell loop: a SIMD packet then runs as long as its busiest lane's
         # total, not the sum over cells of each cell's busiest lane. A lane's photon
         # order is unchanged.
-        has = k < end
-        flux, count, dropped = visit(k, cell, flux, count, dropped, has)
-        k = dr.select(has, k + 1, k)
+        # Two photons per step (the second where the cell has one more): the cell step
+        # and the loop's own work are shared by both (9% faster; 3 or 4 were slower).
+        for _ in range(2):
+            has = k < end
+            flux, count, dropped = visit(k, cell, flux, count, dropped, has)
+            k = dr.select(has, k + 1, k)
         # Next cell as soon as this one is done, in the same step as its last photon.
         # Stepped x fastest, then y, then z, not by c % ex, c // ex ... (integer division
         # has no vector instruction: it cost more than the photons on the CPU).
