@@ -142,8 +142,8 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
-            guard: str = "on", guide: str = "on", tile: int | None = None, device: str = "cpu",
-            precision: str = "auto") -> np.ndarray:
+            guard: str = "on", guide: str = "on", guide_quality: str | None = None,
+            tile: int | None = None, device: str = "cpu", precision: str = "auto") -> np.ndarray:
     """The consistent learned reconstruction of a render (paper 002 Eq. 6): (H, W, 3) float32.
 
     ``buffers``: a :class:`BufferFile` (what :func:`render` returns) or the path of a
@@ -151,7 +151,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     or a loaded model (:func:`load_model`). ``guard``: the firefly guard, ``on``
     (default), ``off`` or ``model`` (as the checkpoint was trained), as
     ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4 steering
-    the weights), likewise; ``tile``, ``device``, ``precision`` as its options.
+    the weights), likewise; ``guide_quality``: OIDN's mode for the guide (``high``,
+    ``balanced``, ``fast``; None: the model's); ``tile``, ``device``, ``precision`` as its
+    options.
 
     >>> import ppmrecon
     >>> buf = ppmrecon.render("plane_point", passes=2, photons=4096, resolution=16)
@@ -171,8 +173,18 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     if not isinstance(buf, BufferFile):
         raise UsageError(f"denoise: expected a BufferFile or a buffer-file path, got {type(buffers).__name__}")
     net = load_model(model)
+    chosen = guide_choice(guide, net.guide)
+    if guide_quality is not None:
+        from dataclasses import replace
+
+        from .model.guide import OIDN_QUALITIES
+
+        if guide_quality not in OIDN_QUALITIES or not chosen.enabled:
+            raise UsageError(f"denoise: guide_quality must be one of {', '.join(OIDN_QUALITIES)} "
+                             f"with the guide on, got {guide_quality!r}")
+        chosen = replace(chosen, quality=guide_quality)
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
-               guard=guard_choice(guard, net.guard), guide=guide_choice(guide, net.guide)).rgb
+               guard=guard_choice(guard, net.guard), guide=chosen).rgb
 
 
 def load_buffers(path: str | os.PathLike) -> BufferFile:

@@ -70,7 +70,7 @@ def test_any_guide_stays_within_the_terms_and_converged_inputs_ignore_it():
 def test_guide_planes_are_oidn_of_the_source_with_a_relative_tolerance():
     buf = make_buffer(16, 20, seed=4)
     planes = guide_planes(buf.estimates, buf.albedo, buf.normal, GuideConfig(enabled=True), scale=2.0, floor=1e-3)
-    g = oidn_image(buf.estimates[4], buf.albedo, buf.normal)
+    g = oidn_image(buf.estimates[4], buf.albedo, buf.normal, DEFAULT_GUIDE.quality)
     assert planes.shape == (1, 4, 16, 20)
     np.testing.assert_allclose(planes[0, :3].permute(1, 2, 0).numpy(), g)
     np.testing.assert_allclose(planes[0, 3].numpy(), 0.03 * g.mean(-1) + 2e-3, rtol=1e-5)
@@ -127,10 +127,41 @@ def test_cli_guide_switch_and_header(tmp_path):
                          "-o", str(tmp_path / "off.exr")]) == 0
     on, h_on = B.read_rgb(tmp_path / "on.exr")
     off, h_off = B.read_rgb(tmp_path / "off.exr")
-    assert h_on["ppmrecon.guide"] == "oidn(z4) beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
+    assert h_on["ppmrecon.guide"] == "oidn(z4, fast) beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
     assert not np.allclose(on, off)
     planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
     assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())
+
+
+def test_guide_quality_option(tmp_path, capsys):
+    """--guide-quality picks OIDN's mode (header says which; 'high' and 'fast' give
+    different guides, hence different images); a checkpoint without the setting reads as
+    'fast'; a bad mode or the option with the guide off is one clear error."""
+    import ppmrecon
+    from ppmrecon.errors import UsageError
+
+    buf = make_buffer(24, 24, seed=8)
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    assert C.load_checkpoint(tmp_path / "m.pt").model.guide.quality == "fast"
+    assert GuideConfig.from_dict({"enabled": True, "beta": 0.03, "source": 4, "cross": 2.0}).quality == "fast"
+    with pytest.raises(ValueError, match="quality"):
+        GuideConfig(enabled=True, quality="slow")
+    images = {}
+    for q in ("high", "fast"):
+        out = tmp_path / f"{q}.exr"
+        assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q",
+                             "--guide-quality", q, "-o", str(out)]) == 0
+        images[q], header = B.read_rgb(out)
+        assert header["ppmrecon.guide"] == f"oidn(z4, {q}) beta=0.03 cross=2"
+    assert not np.array_equal(images["high"], images["fast"])
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_quality="high"), images["high"])
+    assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide", "off",
+                         "--guide-quality", "high"]) != 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--guide-quality" in err[0] and "--guide on" in err[0]
+    with pytest.raises(UsageError, match="guide_quality"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_quality="slow")
 
 
 def test_a_wrong_guide_cannot_stop_convergence():
@@ -159,7 +190,7 @@ def test_where_the_two_hit_points_disagree_the_guide_is_their_geometric_mean():
     buf = replace(buf, estimates=est)
     cross = guide_planes(buf.estimates, buf.albedo, buf.normal, DEFAULT_GUIDE, scale=1.0, floor=1e-3)[0, :3]
     plain = guide_planes(buf.estimates, buf.albedo, buf.normal, GuideConfig(enabled=True), scale=1.0, floor=1e-3)[0, :3]
-    gy = torch.from_numpy(oidn_image(buf.estimates[0], buf.albedo, buf.normal)).permute(2, 0, 1)
+    gy = torch.from_numpy(oidn_image(buf.estimates[0], buf.albedo, buf.normal, DEFAULT_GUIDE.quality)).permute(2, 0, 1)
     inside = (slice(None), slice(6, 10), slice(6, 10))
     torch.testing.assert_close(cross[inside], (plain[inside] * gy[inside]).sqrt(), rtol=1e-5, atol=1e-5)
     assert float(cross[inside].mean()) < 0.5 * float(plain[inside].mean())

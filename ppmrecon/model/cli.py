@@ -2,7 +2,8 @@
 
     ppmrecon-denoise INPUT.exr [INPUT.exr | 'PATTERN*.exr' ...] [--model CKPT]
                      [--output OUT.exr] [--tile N] [--weights-layers] [--device cpu|cuda]
-                     [--threads N] [--guard model|on|off] [--guide model|on|off] [--quiet]
+                     [--threads N] [--guard model|on|off] [--guide model|on|off]
+                     [--guide-quality high|balanced|fast] [--quiet]
     ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
 
 The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
@@ -36,7 +37,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, GuideConfig
+from .guide import DEFAULT_GUIDE, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -91,6 +92,8 @@ def build_parser() -> ArgumentParser:
                         "the checkpoint's guide settings if it has them), 'model' = as the checkpoint "
                         "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
                         "(default there: off)")
+    p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
+                   help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -209,6 +212,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
             raise UsageError("--anchor is part of the guard: it needs --guard on (the default)")
         guard = replace(guard, anchor=args.anchor)
     guide = guide_choice(args.guide or "on", model.guide)
+    if args.guide_quality is not None:
+        if not guide.enabled:
+            raise UsageError("--guide-quality is part of the guide: it needs --guide on (the default)")
+        guide = replace(guide, quality=args.guide_quality)
     for src, out in zip(inputs, outputs):
         _denoise_one(args, src, out, model, model_path, device, guard, guide)
     return 0
@@ -238,7 +245,7 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
                    H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0,
-                   H_GUIDE: (f"oidn(z{guide.source}) beta={guide.beta:g} cross={guide.cross:g}"
+                   H_GUIDE: (f"oidn(z{guide.source}, {guide.quality}) beta={guide.beta:g} cross={guide.cross:g}"
                              if guide.enabled else "off")})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:

@@ -56,6 +56,8 @@ from .combine import N_CORRELATED, N_RGB, _padded_differences
 
 #: Estimate the guide denoises: ~z^4, the widest bandwidth (lowest variance) of the five.
 GUIDE_SOURCE = 4
+#: OIDN's quality modes (pyoidn's names).
+OIDN_QUALITIES = ("high", "balanced", "fast")
 #: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
 SPIKE_RATIO = 4.0
 
@@ -70,6 +72,10 @@ class GuideConfig:
     #: > 1: also denoise ~y (its own hit point A) and, where the two guides differ by more
     #: than this factor, use their geometric mean; 0 = off
     cross: float = 0.0
+    #: OIDN's quality mode for the guide ("high", "balanced" or "fast"): "fast" halves
+    #: OIDN's time at 1280x720 for 0.2% better / 0.9% worse relMSE (study scenes /
+    #: validation, ``bench_guide.py``); checkpoints without the setting read as "fast"
+    quality: str = "fast"
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -80,6 +86,9 @@ class GuideConfig:
         if isinstance(self.cross, bool) or not isinstance(self.cross, (int, float)) \
                 or not (self.cross == 0 or self.cross > 1):
             raise ValueError(f"guide setting 'cross' must be 0 (off) or a factor > 1, got {self.cross!r}")
+        if self.quality not in OIDN_QUALITIES:
+            raise ValueError(f"guide setting 'quality' must be one of {', '.join(OIDN_QUALITIES)}, "
+                             f"got {self.quality!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -107,10 +116,10 @@ def _pyoidn():
     return pyoidn
 
 
-def oidn_image(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray) -> np.ndarray:
+def oidn_image(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray, quality: str = "high") -> np.ndarray:
     """OIDN's HDR denoise of one (H, W, 3) image with its albedo and normal, float32."""
     out = _pyoidn().denoise(np.ascontiguousarray(colour, np.float32), np.ascontiguousarray(albedo, np.float32),
-                            np.ascontiguousarray(normal, np.float32), hdr=True)
+                            np.ascontiguousarray(normal, np.float32), hdr=True, quality=quality)
     out = np.asarray(out, np.float32)
     # OIDN may return tiny negatives near edges; radiance is >= 0 and the prior needs a finite guide
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
@@ -144,11 +153,11 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     its B-only spikes removed (:func:`despike`). Whole images only: OIDN has no halo."""
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
-    g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal)).permute(2, 0, 1)
+    g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
     if cfg.cross and cfg.source:
         # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
         # a rare path); neither guide is to be trusted, their geometric mean lies between
-        gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal)).permute(2, 0, 1)
+        gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
         eps = floor * float(scale)
         a, b = g.mean(0, keepdim=True) + eps, gy.mean(0, keepdim=True) + eps
         apart = torch.maximum(a / b, b / a) > cfg.cross

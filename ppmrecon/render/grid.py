@@ -76,6 +76,7 @@ class PhotonGrid:
     cell_size: float
     table_mask: int
     split_direct: bool = False
+    count: int = 0
 
     def __len__(self) -> int:
         return dr.width(self.record) // RECORD
@@ -87,20 +88,22 @@ def build_grid(pm: PhotonMap, cell_size: float, split_direct: bool = False) -> P
     n = len(pm)
     table = 1 << max(4, int(np.ceil(np.log2(max(2 * n, 1)))))
     mask = table - 1
-    inv_cell = dr.opaque(mi.Float, 1.0 / cell_size)
-    key = cell_hash(cell_of(pm.p, inv_cell), mask) * 2
-    if split_direct:
-        key += dr.select(pm.depth == 0, mi.UInt32(1), mi.UInt32(0))
     # On the device, no host round trip: a stable radix sort (dr.argsort) and a counting
     # pass whose exclusive prefix sum gives every key's first slot (start[2T] = n).
     counts = dr.zeros(mi.UInt32, 2 * table + 1)
-    record = dr.empty(mi.Float, n * RECORD) if n else dr.zeros(mi.Float, 0)  # every slot is written
-    if n:
+    # Every slot is written; without photons one zero record that no bucket lists (a
+    # gather may not read from an empty array, even where no lane is active).
+    record = dr.empty(mi.Float, n * RECORD) if n else dr.zeros(mi.Float, RECORD)
+    if n:  # (no photon: e.g. only direct ones, left out where direct light is apart)
+        inv_cell = dr.opaque(mi.Float, 1.0 / cell_size)
+        key = cell_hash(cell_of(pm.p, inv_cell), mask) * 2
+        if split_direct:
+            key += dr.select(pm.depth == 0, mi.UInt32(1), mi.UInt32(0))
         dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key)
         order = dr.argsort(key)
         dr.scatter(record, dr.gather(mi.ArrayXf, pm.record, order, shape=(RECORD, n)), dr.arange(mi.UInt32, n))
     start = dr.prefix_sum(counts)
     grid = PhotonGrid(record=record, start=start, cell_size=float(cell_size),
-                      table_mask=mask, split_direct=split_direct)
+                      table_mask=mask, split_direct=split_direct, count=n)
     dr.eval(grid.record, grid.start)
     return grid
