@@ -172,16 +172,19 @@ def prior_logits(y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor, k: int) 
     y (B, 3, H, W), z (B, 4, 3, H, W) as :func:`.combine.combine` gets them, ``guide``
     (B, 4, H, W) from :func:`guide_planes` (cropped like y). Channel ``4 (a K + b) + j``
     is ``-|t^j_{c,i} - g_c|^2 / (2 sigma_c^2)`` for the term at offset (a - K//2, b - K//2),
-    the terms evaluated as the combiner evaluates them (replicate padding).
+    the terms padded as the combiner pads them (replicate), ``t - g`` evaluated as
+    ``(y_i - z^j_i) + (z^j_c - g_c)`` (the combiner's terms up to rounding).
     """
     b, _, h, w = y.shape
     dpad = _padded_differences(y, z, k // 2).view(b, N_CORRELATED, N_RGB, h + k - 1, w + k - 1)
-    g = guide[:, :N_RGB].unsqueeze(1)                                    # (B, 1, 3, H, W)
-    scale = -0.5 / guide[:, N_RGB:].square()                            # (B, 1, H, W)
+    z_minus_g = z - guide[:, :N_RGB].unsqueeze(1)                      # (B, 4, 3, H, W)
+    scale = -0.5 / (N_RGB * guide[:, N_RGB:].square())                 # the mean over RGB folded in
     out = torch.empty(b, N_CORRELATED * k * k, h, w, dtype=y.dtype, device=y.device)
+    t = torch.empty_like(z)                                            # one buffer for every offset
     for row in range(k):
         for col in range(k):
-            t = dpad[..., row:row + h, col:col + w] + z                # (B, 4, 3, H, W) terms at this offset
+            # t^j_{c,i} - g_c = (y_i - z^j_i) + (z^j_c - g_c) at this offset, in place
+            torch.add(dpad[..., row:row + h, col:col + w], z_minus_g, out=t)
             base = N_CORRELATED * (row * k + col)
-            out[:, base:base + N_CORRELATED] = (t - g).square().mean(2) * scale
-    return out
+            torch.sum(t.square_(), dim=2, out=out[:, base:base + N_CORRELATED])
+    return out.mul_(scale)
