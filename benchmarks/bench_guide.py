@@ -75,8 +75,9 @@ def variants(models: dict) -> dict:
             out[f"{name} +guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
                                                                                guide=DEFAULT_GUIDE).rgb
         else:
-            out[f"{name} -guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
-                                                                               guide=GuideConfig()).rgb
+            if not net.features.guide:   # a model that reads the guide cannot run without it
+                out[f"{name} -guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
+                                                                                   guide=GuideConfig()).rgb
             for quality in OIDN_QUALITIES:
                 if quality != net.guide.quality:
                     g = replace(net.guide, quality=quality)

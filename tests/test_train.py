@@ -360,3 +360,45 @@ def test_guided_fit_starts_from_the_guide_and_resumes(tiny_data, tmp_path, capsy
     cfg.write_text(json.dumps({**json.loads(cfg.read_text()), "epochs": 2}))
     assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg), "--resume", "--quiet"]) == 0
     assert [h["epoch"] for h in json.loads((run / "history.json").read_text())] == [1, 2]
+
+
+def test_guide_aware_fit_reads_the_guide_and_tempers_its_prior(tiny_data, tmp_path):
+    """With the guide as input channels and a learned temperature, the model's first
+    layer takes 3 more channels and its head one more; untrained (zero head: tau = 0, no
+    correction) it is exactly the guide alone; a fit moves the temperature channel; the
+    checkpoint denoises a buffer file, and refuses to run with the guide off."""
+    from ppmrecon.model.features import FeatureConfig
+    from ppmrecon.model.guard import DEFAULT_ON
+    from ppmrecon.model.guide import DEFAULT_GUIDE
+    from ppmrecon.model.infer import denoise
+    from ppmrecon.model.kpn import build
+
+    root, _ = tiny_data
+    plain = build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON, DEFAULT_GUIDE)
+    aware = build("tiny", FeatureConfig(scale_free=True, guide=True), DEFAULT_ON,
+                  GuideConfig(enabled=True, cross=2.0, temperature=True))
+    assert aware.body[0].in_channels == plain.body[0].in_channels + 3
+    assert aware.head.out_channels == plain.head.out_channels + 1
+    with pytest.raises(ValueError, match="guide"):
+        build("tiny", FeatureConfig(guide=True))
+    first = json.loads((root / "manifest.json").read_text())["scenes"][0]
+    buf = B.read_buffers(root / first["id"] / first["inputs"][0]["file"])
+    torch.manual_seed(0)
+    for m in (plain, aware):   # a nonzero body: the zero head alone must cancel it
+        for p in m.body.parameters():
+            p.data.normal_(0, 0.3)
+    np.testing.assert_allclose(denoise(buf, aware).rgb, denoise(buf, plain).rgb, rtol=1e-5, atol=1e-6)
+
+    cfg = tmp_path / "train.json"
+    cfg.write_text(json.dumps({"preset": "tiny", "select": "ratio", "val_passes": 0, "epochs": 1,
+                               "steps_per_epoch": 3, "batch": 2, "lr": 1e-2, "guard": {"enabled": True},
+                               "guide": {"enabled": True, "temperature": True},
+                               "features": {"scale_free": True, "guide": True}}))
+    run = tmp_path / "run"
+    assert train_cli.main(["fit", str(root), "--out", str(run), "--config", str(cfg), "--quiet"]) == 0
+    model = C.load_checkpoint(run / "model.pt").model
+    assert model.features.guide and model.guide.temperature
+    assert float(model.head.weight.detach()[-1].abs().sum()) > 0     # tau's filter moved
+    assert np.isfinite(denoise(buf, model).rgb).all()
+    with pytest.raises(UsageError, match="guide off"):
+        denoise(buf, model, guide=GuideConfig())

@@ -31,6 +31,10 @@ pixel stands out of it), and ``log((max_k xbar_k + f s) / (median_k xbar_k + f s
 over the five (one or two estimates far from the others). Not one contrast per
 estimate: per-tile work and the first layer's width are what inference time is made of.
 
+``guide`` adds the denoiser guide (:mod:`.guide`; OIDN's image of ~z^4) as 3 channels,
+``log1p(g / s)``: the network then sees what the prior of the weights pulls towards, and
+can learn where to trust it (with the guide's ``temperature``).
+
 Only the network sees compressed values; the combiner gets the raw radiance ~y, ~z.
 Per-image normalisations (depth, radius, radiance) use the whole image, so compute
 features once per image and crop them afterwards (tiles, training patches);
@@ -49,9 +53,11 @@ import torch
 from ..buffers import N_ESTIMATES, BufferFile
 from ..fileio import unknown_keys
 from .guard import RELATIVE_FLOOR, image_scale, local_floor, median_of_estimates, passes_of
+from .guide import guide_channels
 
 N_BASE_CHANNELS = 3 * N_ESTIMATES + N_ESTIMATES + 3 + 3 + 1   # = 27 (paper 002 Sec. 4.3)
 N_OUTLIER_CHANNELS = 3   # contrast of ~y, contrast of ~z^1, spread of the five
+N_GUIDE_CHANNELS = 3     # the denoiser guide's RGB
 _PASS_SCALE = math.log1p(1e6)
 
 
@@ -63,11 +69,12 @@ class FeatureConfig:
     passes: bool = False       # + 1 channel: log1p(passes) / log1p(1e6), constant over the image
     scale_free: bool = False   # radiance / image scale before log1p; relative variances
     outliers: bool = False     # + 3 channels: ~y, ~z^1 over their 3x3 level; max/median of the five
+    guide: bool = False        # + 3 channels: the denoiser guide, log1p(g / s) (needs the guide on)
 
     @property
     def n_channels(self) -> int:
         return (N_BASE_CHANNELS + (N_ESTIMATES if self.radius else 0) + (1 if self.passes else 0)
-                + (N_OUTLIER_CHANNELS if self.outliers else 0))
+                + (N_OUTLIER_CHANNELS if self.outliers else 0) + (N_GUIDE_CHANNELS if self.guide else 0))
 
     def slices(self) -> dict[str, slice]:
         """Channel ranges by name (e.g. to transform ``normal`` under augmentation)."""
@@ -79,6 +86,8 @@ class FeatureConfig:
             names.append(("passes", 1))
         if self.outliers:
             names.append(("outliers", N_OUTLIER_CHANNELS))
+        if self.guide:
+            names.append(("guide", N_GUIDE_CHANNELS))
         out, start = {}, 0
         for name, n in names:
             out[name] = slice(start, start + n)
@@ -128,7 +137,7 @@ class FeatureScales(NamedTuple):
 
 
 def _needs_radiance(config: FeatureConfig) -> bool:
-    return config.scale_free or config.outliers
+    return config.scale_free or config.outliers or config.guide
 
 
 def feature_scales(depth: torch.Tensor, radii: torch.Tensor | None = None,
@@ -163,11 +172,12 @@ def outlier_channels(mean: torch.Tensor, floor: torch.Tensor) -> torch.Tensor:
 def build_features(estimates: torch.Tensor, variances: torch.Tensor, albedo: torch.Tensor,
                    normal: torch.Tensor, depth: torch.Tensor, config: FeatureConfig = FeatureConfig(),
                    radii: torch.Tensor | None = None, passes: torch.Tensor | None = None,
-                   scales: FeatureScales | None = None) -> torch.Tensor:
+                   scales: FeatureScales | None = None, guide: torch.Tensor | None = None) -> torch.Tensor:
     """Assemble the (B, C, H, W) network input.
 
     estimates (B, 5, 3, H, W), variances (B, 5, H, W), albedo and normal (B, 3, H, W),
-    depth (B, H, W); radii (B, 5, H, W) and passes (B,) when the config asks for them.
+    depth (B, H, W); radii (B, 5, H, W), passes (B,) and the guide planes (B, 4, H, W,
+    :func:`.guide.guide_planes`) when the config asks for them.
     Without ``scales`` the inputs are taken to be whole images; for a crop, pass the
     whole image's :func:`feature_scales`.
     """
@@ -176,6 +186,8 @@ def build_features(estimates: torch.Tensor, variances: torch.Tensor, albedo: tor
         raise ValueError("FeatureConfig(radius=True) needs radii")
     if config.passes and passes is None:
         raise ValueError("FeatureConfig(passes=True) needs the pass count")
+    if config.guide and guide is None:
+        raise ValueError("FeatureConfig(guide=True) needs the denoiser guide's planes (the guide on)")
     if scales is None:
         scales = feature_scales(depth, radii if config.radius else None,
                                 estimates if _needs_radiance(config) else None)
@@ -200,6 +212,8 @@ def build_features(estimates: torch.Tensor, variances: torch.Tensor, albedo: tor
         parts.append(level.view(b, 1, 1, 1).expand(b, 1, h, w))
     if config.outliers:
         parts.append(outlier_channels(mean, floor))
+    if config.guide:
+        parts.append(guide_channels(guide, scales.radiance))
     return torch.cat(parts, 1)
 
 
@@ -246,7 +260,8 @@ def from_buffer(buf: BufferFile, config: FeatureConfig = FeatureConfig(),
     feats = build_features(est, t(buf.variances[:, rows, cols]), t(buf.albedo[rows, cols]).permute(0, 3, 1, 2),
                            t(buf.normal[rows, cols]).permute(0, 3, 1, 2), t(buf.depth[rows, cols]), config,
                            radii=t(buf.radii[:, rows, cols]) if config.radius else None,
-                           passes=torch.tensor([passes_of(buf)]) if config.passes else None, scales=scales)
+                           passes=torch.tensor([passes_of(buf)]) if config.passes else None, scales=scales,
+                           guide=guide[..., rows, cols] if config.guide and guide is not None else None)
     est = est[..., keep_r, keep_c]
     if guide is not None:
         guide = guide[..., crop[0], crop[1]].contiguous() if crop else guide

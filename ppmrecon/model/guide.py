@@ -76,6 +76,9 @@ class GuideConfig:
     #: OIDN's time at 1280x720 for 0.2% better / 0.9% worse relMSE (study scenes /
     #: validation, ``bench_guide.py``); checkpoints without the setting read as "fast"
     quality: str = "fast"
+    #: the network also predicts a per-pixel log-temperature tau of the prior:
+    #: logits = prior * exp(-tau) + correction (see :func:`guided_logits`)
+    temperature: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -86,6 +89,10 @@ class GuideConfig:
         if isinstance(self.cross, bool) or not isinstance(self.cross, (int, float)) \
                 or not (self.cross == 0 or self.cross > 1):
             raise ValueError(f"guide setting 'cross' must be 0 (off) or a factor > 1, got {self.cross!r}")
+        if not isinstance(self.temperature, bool):
+            raise ValueError(f"guide setting 'temperature' must be true or false, got {self.temperature!r}")
+        if self.temperature and not self.enabled:
+            raise ValueError("guide setting 'temperature' needs the guide enabled")
         if self.quality not in OIDN_QUALITIES:
             raise ValueError(f"guide setting 'quality' must be one of {', '.join(OIDN_QUALITIES)}, "
                              f"got {self.quality!r}")
@@ -164,6 +171,38 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
+
+
+#: Bound of the learned log-temperature: the prior is at most e^4 ~ 55x sharper or flatter.
+TAU_LIMIT = 4.0
+
+
+def net_channels(cfg: GuideConfig, k: int) -> int:
+    """Output channels of the network for window K: the 4 K^2 logits (their correction
+    to the prior when the guide is on), plus the log-temperature with ``temperature``."""
+    return N_CORRELATED * k * k + (1 if cfg.temperature else 0)
+
+
+def guided_logits(net: torch.Tensor, y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor, k: int,
+                  cfg: GuideConfig) -> torch.Tensor:
+    """Eq. 6's logits from the network's output ``net`` (B, :func:`net_channels`, H, W) and
+    the guide planes: ``prior + correction``, or with ``cfg.temperature``
+    ``prior * exp(-tau) + correction``, tau (the last channel) clamped to
+    [-:data:`TAU_LIMIT`, :data:`TAU_LIMIT`]. tau = 0 (the zero-initialised head) is the
+    plain prior; tau > 0 flattens it where the network trusts the guide less (more terms
+    averaged), tau < 0 sharpens it. Any logits keep Eq. 6 consistent."""
+    prior = prior_logits(y, z, guide, k)
+    if not cfg.temperature:
+        return net + prior
+    tau = net[:, -1:].clamp(-TAU_LIMIT, TAU_LIMIT)
+    return torch.addcmul(net[:, :-1], prior, torch.exp(-tau))
+
+
+def guide_channels(guide: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
+    """The guide as network input (``FeatureConfig.guide``): log1p(g / s), (B, 3, H, W),
+    scale-free like the ``scale_free`` estimates (s = the image's radiance scale, (B,))."""
+    s = scale.to(guide.dtype).view(-1, 1, 1, 1)
+    return torch.log1p(guide[:, :N_RGB].clamp(min=0) / torch.where(s > 0, s, torch.ones_like(s)))
 
 
 def prior_logits(y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor, k: int) -> torch.Tensor:

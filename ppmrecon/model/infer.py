@@ -31,7 +31,7 @@ from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale
-from .guide import GuideConfig, guide_planes, prior_logits
+from .guide import GuideConfig, guide_planes, guided_logits
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -139,9 +139,15 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     guide = model.guide if guide is None else guide
     buf = guard_buffer(buf, guard)                      # whole image: medians need no halo
     scales = buffer_scales(buf, model.features)
-    from_buffer(buf, model.features, (slice(0, 1), slice(0, 1)), scales)   # header problems fail early
+    corner = (slice(0, 1), slice(0, 1))
+    if not model.features.guide:
+        from_buffer(buf, model.features, corner, scales)   # header problems fail early
     scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
+    if model.features.guide and not guide.enabled:
+        raise UsageError("this model takes the denoiser guide as input: it cannot run with the guide off")
     planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
+    if model.features.guide:
+        from_buffer(buf, model.features, corner, scales, planes)
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales, planes)
@@ -201,7 +207,9 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
             logits = model.predict(inp.features.to(device), precision)
             y, z = inp.y.to(device), inp.z.to(device)
             if inp.guide is not None:
-                logits = logits + prior_logits(y, z, inp.guide.to(device), model.window)
+                logits = guided_logits(logits, y, z, inp.guide.to(device), model.window, model.guide)
+            elif model.guide.temperature:   # the guide switched off: no prior to temper
+                logits = logits[:, :-1]
             try:
                 out = combine_with_weights(y, z, logits, method="loop")
             except NonFiniteLogitsError:

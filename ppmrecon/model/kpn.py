@@ -24,10 +24,9 @@ import torch.nn as nn
 from ..data import MODELS
 from ..errors import UsageError
 from ..fileio import unknown_keys
-from .combine import logit_channels
 from .features import FeatureConfig
 from .guard import GuardConfig
-from .guide import GuideConfig
+from .guide import GuideConfig, net_channels
 
 PRESETS_DIR: Path = MODELS
 #: The CPU default: the only preset within a few times OIDN's time at 720p on 2 cores
@@ -102,7 +101,9 @@ def load_preset(name_or_path: str | os.PathLike) -> Preset:
 
 
 class KPN(nn.Module):
-    """Features (B, C, H, W) -> combination logits (B, 4 K^2, H, W) (paper 002 Fig. 4).
+    """Features (B, C, H, W) -> combination logits (B, 4 K^2, H, W) (paper 002 Fig. 4);
+    with the guide's ``temperature``, one more channel: the prior's log-temperature
+    (:func:`.guide.guided_logits`).
 
     ``guard`` and ``guide`` are not part of the network: they are the firefly guard
     (:mod:`.guard`) and the denoiser guide (:mod:`.guide`) the model was trained with,
@@ -114,6 +115,8 @@ class KPN(nn.Module):
     def __init__(self, preset: Preset, features: FeatureConfig = FeatureConfig(),
                  guard: GuardConfig = GuardConfig(), guide: GuideConfig = GuideConfig()):
         super().__init__()
+        if features.guide and not guide.enabled:
+            raise ValueError("feature 'guide' (the guide as input) needs the denoiser guide enabled")
         self.preset = preset
         self.features = features
         self.guard = guard
@@ -126,7 +129,7 @@ class KPN(nn.Module):
             channels = preset.filters
         self.body = nn.Sequential(*body)
         fk = preset.final_kernel
-        self.head = nn.Conv2d(channels, logit_channels(preset.window), fk, padding=fk // 2)
+        self.head = nn.Conv2d(channels, net_channels(guide, preset.window), fk, padding=fk // 2)
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.xavier_uniform_(m.weight)   # Glorot uniform (paper 002 Sec. 4.3)

@@ -118,8 +118,8 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
                 continue
             try:
                 guarded = guard_buffer(buf, guard)
-                inputs = from_buffer(guarded, features)
                 planes = buffer_guide(guarded, guide, guard)[0] if guide.enabled else None
+                inputs = from_buffer(guarded, features, guide=None if planes is None else planes[None])
             except PpmreconError as exc:   # e.g. no pass count in the header
                 warn(f"skipping {path}: {exc}")
                 continue

@@ -36,7 +36,7 @@ from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
 from ..model.features import FeatureConfig, ModelInputs
 from ..model.guard import GuardConfig, finish
-from ..model.guide import GuideConfig, prior_logits
+from ..model.guide import GuideConfig, guided_logits
 from ..model.infer import denoise_inputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
@@ -140,7 +140,7 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
     feats, y, z, ref, *guide = (t.to(dev) for t in sampler.cut(mine))
     logits = model(feats)
     if guide:                    # the network's logits correct the guide's prior (inference does the same)
-        logits = logits + prior_logits(y, z, guide[0], _window(model))
+        logits = guided_logits(logits, y, z, guide[0], _window(model), _guide(model))
     pred = combine(y, z, logits, method="unfold")
     if guard.enabled:     # anchor + band as inference applies them (Eq. 8 clips at 0 itself)
         pred = finish(pred, y, z, guard)
@@ -156,6 +156,10 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
 
 def _window(model: torch.nn.Module) -> int:
     return (model.module if hasattr(model, "module") else model).window
+
+
+def _guide(model: torch.nn.Module) -> GuideConfig:
+    return (model.module if hasattr(model, "module") else model).guide
 
 
 def _sharded_sampler(samples: list[Sample], cfg: TrainConfig, features: FeatureConfig,
