@@ -105,11 +105,18 @@ def lambertian_table(scene: mi.Scene) -> LambertianTable:
 
 @dr.syntax
 def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, rr_depth: int,
-          null_bsdfs: bool = False):
+          lambertian_ids: mi.Bool, null_bsdfs: bool = False):
     """Follow delta bounces; returns the last ray, its preliminary intersection (the
-    gather point where found), throughput, L_e, path length, segments, found, and which
-    lanes dropped a non-finite term."""
-    last = dr.zeros(mi.PreliminaryIntersection3f, dr.width(ray))
+    gather point where found), throughput, L_e, path length, segments, found, which
+    lanes dropped a non-finite term, and the gather point's G-buffer values (albedo,
+    shading normal, geometric normal facing the eye, Lambertian flag), taken from the
+    surface interaction the walk computes there anyway."""
+    n = dr.width(ray)
+    last = dr.zeros(mi.PreliminaryIntersection3f, n)
+    albedo = dr.zeros(mi.Color3f, n)
+    normal = dr.zeros(mi.Normal3f, n)
+    n_oriented = dr.zeros(mi.Normal3f, n)
+    lambert = dr.zeros(mi.Bool, n)
     beta = mi.Color3f(1.0)
     emitted = mi.Color3f(0.0)
     length = mi.Float(0.0)
@@ -150,6 +157,11 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
         stop_here = hit & smooth
         found |= stop_here
         last[stop_here] = pi
+        albedo[stop_here] = bsdf.eval_diffuse_reflectance(si, stop_here)
+        normal[stop_here] = si.sh_frame.n
+        n_oriented[stop_here] = dr.select(dr.dot(si.n, ray.d) < 0.0, si.n, -si.n)
+        # A delta-only BSDF counts as Lambertian in the table (it is never a gather point).
+        lambert[stop_here] = dr.gather(mi.Bool, lambertian_ids, dr.reinterpret_array(mi.UInt32, bsdf), stop_here)
         length += dr.select(hit, si.t, 0.0)
         active = hit & ~smooth & (depth < max_depth)
 
@@ -168,7 +180,7 @@ def _walk(scene: mi.Scene, ray: mi.Ray3f, rng: mi.PCG32, max_depth: mi.UInt32, r
         bad |= active & ~finite
         active &= (~roulette | survive) & dr.any(beta > 0.0) & finite
 
-    return ray, last, beta, emitted, length, depth, found, bad
+    return ray, last, beta, emitted, length, depth, found, bad, albedo, normal, n_oriented, lambert
 
 
 def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
@@ -191,19 +203,11 @@ def trace_eye(scene: mi.Scene, sensor: mi.Sensor, seed: int, max_depth: int,
     ray = mi.Ray3f(ray)
 
     depth_cap = mi.UInt32(0xFFFFFFFF if max_depth < 0 else max_depth)
-    last_ray, hit, beta, emitted, length, segments, found, bad = _walk(scene, ray, rng, depth_cap, rr_depth,
-                                                                        _has_null_bsdf(scene))
+    table = lambertian_table(scene) if lambertian is None else lambertian
+    last_ray, hit, beta, emitted, length, segments, found, bad, albedo, normal, n_oriented, lambert = _walk(
+        scene, ray, rng, depth_cap, rr_depth, table.by_id, _has_null_bsdf(scene))
     beta *= ray_weight
     emitted *= ray_weight
-
-    si = hit.compute_surface_interaction(last_ray, mi.RayFlags.All, found)
-    bsdf = si.bsdf(last_ray)
-    albedo = dr.select(found, bsdf.eval_diffuse_reflectance(si, found), 0.0)
-    normal = dr.select(found, si.sh_frame.n, 0.0)
-    n_oriented = dr.select(dr.dot(si.n, last_ray.d) < 0.0, si.n, -si.n)
-    table = lambertian_table(scene) if lambertian is None else lambertian
-    # A delta-only BSDF counts as Lambertian in the table (it is never a gather point).
-    lambert = found & dr.gather(mi.Bool, table.by_id, dr.reinterpret_array(mi.UInt32, bsdf), found)
     gp = GatherPoints(hit=hit, ray=last_ray, found=found, beta=beta, emitted=emitted, albedo=albedo,
                       normal=normal, depth=dr.select(found, length, 0.0), n_oriented=n_oriented,
                       segments=segments, lambertian=lambert, only_lambertian=table.only)
