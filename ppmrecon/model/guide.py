@@ -32,6 +32,11 @@ Two robustness rules, because the guide is only as good as OIDN's view of one es
   pixel next to the true one; with the guide of ~z^4 alone the output took it (relMSE
   0.0145, 78% of it from five pixels), with ``cross = 2`` 0.0044.
 
+OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
+1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
+and temper the prior per pixel (``temperature``, :func:`guided_logits`); trained on
+v2_cpu that generalised worse to the study scenes (``benchmarks/results/guide_aware``).
+
 Measured with ``benchmarks/bench_guide.py`` (``benchmarks/results/guide/guide.md``): on 15
 renders of the three literature scenes and the two built-in caustic scenes (N = 16, 64,
 256) and 56 validation images of ``data/v2_cpu`` (N = 4..256), the geometric mean of
