@@ -11,6 +11,7 @@ from dataclasses import asdict, replace
 import os
 import shutil
 import sys
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -127,7 +128,9 @@ def _dies_once(job: dict, marker: Path) -> dict:
 
 
 def _always_fails(job: dict, calls: Path) -> dict:
-    (calls / f"attempt-{len(list(calls.iterdir()))}").touch()
+    # one file per attempt, named uniquely: Ray runs the two items side by side, and a
+    # name from the current count could be taken by both (the test then saw 2 files, not 3)
+    (calls / f"attempt-{job['kind']}-{job.get('half')}-{job.get('chunk')}-{uuid.uuid4().hex}").touch()
     if job["kind"] == "reference" and job.get("half") == 1 and job.get("chunk") == 1:
         raise RuntimeError("injected failure\nsecond line of the message")
     return work_item(job)
