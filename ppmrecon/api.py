@@ -163,7 +163,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import guard_choice, guide_choice, torch_device
+    from .model.cli import guard_choice, guide_choice, torch_device, with_guide_quality
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -173,16 +173,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     if not isinstance(buf, BufferFile):
         raise UsageError(f"denoise: expected a BufferFile or a buffer-file path, got {type(buffers).__name__}")
     net = load_model(model)
-    chosen = guide_choice(guide, net.guide)
-    if guide_quality is not None:
-        from dataclasses import replace
-
-        from .model.guide import OIDN_QUALITIES
-
-        if guide_quality not in OIDN_QUALITIES or not chosen.enabled:
-            raise UsageError(f"denoise: guide_quality must be one of {', '.join(OIDN_QUALITIES)} "
-                             f"with the guide on, got {guide_quality!r}")
-        chosen = replace(chosen, quality=guide_quality)
+    chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
+                                "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

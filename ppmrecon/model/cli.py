@@ -149,6 +149,19 @@ def guide_choice(choice: str, model_guide: GuideConfig) -> GuideConfig:
     return _choice(choice, model_guide, GuideConfig(), DEFAULT_GUIDE)
 
 
+def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with OIDN's quality mode ``quality`` (None: unchanged); ``option`` and the
+    guide's own ``switch`` name the settings in the one-line error (the guide must be on,
+    the mode one of :data:`.guide.OIDN_QUALITIES`)."""
+    if quality is None:
+        return guide
+    if quality not in OIDN_QUALITIES:
+        raise UsageError(f"{option}: must be one of {', '.join(OIDN_QUALITIES)}, got {quality!r}")
+    if not guide.enabled:
+        raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
+    return replace(guide, quality=quality)
+
+
 def _init_checkpoint(args) -> int:
     features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature,
                              scale_free=args.scale_free_features, outliers=args.outlier_features)
@@ -211,11 +224,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
         if not guard.enabled:
             raise UsageError("--anchor is part of the guard: it needs --guard on (the default)")
         guard = replace(guard, anchor=args.anchor)
-    guide = guide_choice(args.guide or "on", model.guide)
-    if args.guide_quality is not None:
-        if not guide.enabled:
-            raise UsageError("--guide-quality is part of the guide: it needs --guide on (the default)")
-        guide = replace(guide, quality=args.guide_quality)
+    guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
+                               "--guide")
     for src, out in zip(inputs, outputs):
         _denoise_one(args, src, out, model, model_path, device, guard, guide)
     return 0

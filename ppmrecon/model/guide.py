@@ -188,19 +188,23 @@ def net_channels(cfg: GuideConfig, k: int) -> int:
     return N_CORRELATED * k * k + (1 if cfg.temperature else 0)
 
 
-def guided_logits(net: torch.Tensor, y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor, k: int,
+def guided_logits(net: torch.Tensor, y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor | None, k: int,
                   cfg: GuideConfig) -> torch.Tensor:
-    """Eq. 6's logits from the network's output ``net`` (B, :func:`net_channels`, H, W) and
-    the guide planes: ``prior + correction``, or with ``cfg.temperature``
-    ``prior * exp(-tau) + correction``, tau (the last channel) clamped to
-    [-:data:`TAU_LIMIT`, :data:`TAU_LIMIT`]. tau = 0 (the zero-initialised head) is the
+    """Eq. 6's logits from the network's output ``net`` (B, :func:`net_channels` of the
+    model's ``cfg``, H, W) and the guide planes: ``prior + correction``, or with
+    ``cfg.temperature`` ``prior * exp(-tau) + correction``, tau (the last channel) clamped
+    to [-:data:`TAU_LIMIT`, :data:`TAU_LIMIT`]. tau = 0 (the zero-initialised head) is the
     plain prior; tau > 0 flattens it where the network trusts the guide less (more terms
-    averaged), tau < 0 sharpens it. Any logits keep Eq. 6 consistent."""
+    averaged), tau < 0 sharpens it. Without ``guide`` (switched off) the correction alone.
+    Any logits keep Eq. 6 consistent."""
+    correction = net[:, :-1] if cfg.temperature else net
+    if guide is None:
+        return correction
     prior = prior_logits(y, z, guide, k)
     if not cfg.temperature:
-        return net + prior
+        return correction + prior
     tau = net[:, -1:].clamp(-TAU_LIMIT, TAU_LIMIT)
-    return torch.addcmul(net[:, :-1], prior, torch.exp(-tau))
+    return torch.addcmul(correction, prior, torch.exp(-tau))
 
 
 def guide_channels(guide: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:

@@ -20,6 +20,7 @@ the 4 K^2 logits per pixel, which is what dominates at full resolution.
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor, as_completed
+from dataclasses import replace
 from contextlib import contextmanager
 from typing import Callable, Iterator, NamedTuple
 
@@ -139,15 +140,12 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     guide = model.guide if guide is None else guide
     buf = guard_buffer(buf, guard)                      # whole image: medians need no halo
     scales = buffer_scales(buf, model.features)
-    corner = (slice(0, 1), slice(0, 1))
-    if not model.features.guide:
-        from_buffer(buf, model.features, corner, scales)   # header problems fail early
-    scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
     if model.features.guide and not guide.enabled:
         raise UsageError("this model takes the denoiser guide as input: it cannot run with the guide off")
+    # header problems fail early, before the guide (whose channels need no header)
+    from_buffer(buf, replace(model.features, guide=False), (slice(0, 1), slice(0, 1)), scales)
+    scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
     planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
-    if model.features.guide:
-        from_buffer(buf, model.features, corner, scales, planes)
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales, planes)
@@ -206,10 +204,8 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
             inp = source(slice(ya, yb), slice(xa, xb))
             logits = model.predict(inp.features.to(device), precision)
             y, z = inp.y.to(device), inp.z.to(device)
-            if inp.guide is not None:
-                logits = guided_logits(logits, y, z, inp.guide.to(device), model.window, model.guide)
-            elif model.guide.temperature:   # the guide switched off: no prior to temper
-                logits = logits[:, :-1]
+            planes = None if inp.guide is None else inp.guide.to(device)
+            logits = guided_logits(logits, y, z, planes, model.window, model.guide)
             try:
                 out = combine_with_weights(y, z, logits, method="loop")
             except NonFiniteLogitsError:

@@ -140,7 +140,7 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
     feats, y, z, ref, *guide = (t.to(dev) for t in sampler.cut(mine))
     logits = model(feats)
     if guide:                    # the network's logits correct the guide's prior (inference does the same)
-        logits = guided_logits(logits, y, z, guide[0], _window(model), _guide(model))
+        logits = guided_logits(logits, y, z, guide[0], _unwrap(model).window, _unwrap(model).guide)
     pred = combine(y, z, logits, method="unfold")
     if guard.enabled:     # anchor + band as inference applies them (Eq. 8 clips at 0 itself)
         pred = finish(pred, y, z, guard)
@@ -154,12 +154,9 @@ def _step_loss(model: torch.nn.Module, sampler: PatchSampler, cfg: TrainConfig, 
     return loss * (share * dist.world), total
 
 
-def _window(model: torch.nn.Module) -> int:
-    return (model.module if hasattr(model, "module") else model).window
-
-
-def _guide(model: torch.nn.Module) -> GuideConfig:
-    return (model.module if hasattr(model, "module") else model).guide
+def _unwrap(model: torch.nn.Module) -> torch.nn.Module:
+    """The KPN itself, also inside DistributedDataParallel."""
+    return model.module if hasattr(model, "module") else model
 
 
 def _sharded_sampler(samples: list[Sample], cfg: TrainConfig, features: FeatureConfig,
