@@ -92,6 +92,13 @@ def variants(models: dict) -> dict:
     for cross in CROSS:
         g = replace(DEFAULT_GUIDE, cross=cross)
         out[f"guide cross={cross:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    import os
+    from ppmrecon.model.kpn import Preset, load_preset
+    base = load_preset("tiny")
+    for kw in (int(v) for v in os.environ.get("PPM_WINDOWS", "").split(",") if v):
+        pre = Preset(f"tiny_k{kw}", base.layers, base.filters, base.kernel, kw, base.final_kernel)
+        m = build(pre, FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, DEFAULT_GUIDE)
+        out[f"guide K={kw}"] = lambda buf, m=m: denoise(buf, m).rgb
     return out
 
 

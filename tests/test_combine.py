@@ -151,6 +151,22 @@ def test_loop_and_unfold_paths_agree(k):
 
 
 @pytest.mark.parametrize("method", ["loop", "unfold"])
+def test_consume_overwrites_only_when_asked_and_changes_no_result(method):
+    torch.manual_seed(8)
+    y, z = torch.rand(1, 3, 9, 11) * 5, torch.rand(1, 4, 3, 9, 11) * 5
+    logits = torch.randn(1, logit_channels(3), 9, 11) * 30
+    kept = logits.clone()
+    plain = combine_with_weights(y, z, logits, method=method)
+    assert torch.equal(logits, kept)                          # the caller's logits untouched
+    consumed = combine_with_weights(y, z, logits, method=method, consume=True)
+    assert torch.equal(consumed.image, plain.image) and torch.equal(consumed.weights_per_z, plain.weights_per_z)
+    assert not torch.equal(logits, kept)                      # the weights were formed in place
+    grad_in = kept.clone().requires_grad_()                   # autograd: never in place
+    combine_with_weights(y, z, grad_in, method=method, consume=True).image.sum().backward()
+    assert torch.equal(grad_in.detach(), kept) and grad_in.grad is not None
+
+
+@pytest.mark.parametrize("method", ["loop", "unfold"])
 def test_gradient_in_logits_matches_finite_differences(method):
     torch.manual_seed(7)
     k = 3

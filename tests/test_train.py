@@ -7,7 +7,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -255,6 +255,24 @@ def test_version1_manifest_is_read_and_completed(tiny_data, tmp_path):
     assert [s["id"] for s in done["scenes"]] == [s["id"] for s in manifest["scenes"]]
     assert all("fireflies" in f for s in done["scenes"] for f in s["inputs"])
     assert not any((data / s["id"] / REFERENCE_HALVES[0]).exists() for s in done["scenes"])
+
+
+def test_a_data_set_grows_with_more_scenes_and_never_shrinks(tiny_data, tmp_path):
+    """The same configuration with more scenes keeps every finished scene (no render,
+    same files) and adds the new ones; fewer scenes are refused in one line."""
+    root, _ = tiny_data
+    data = tmp_path / "grown"
+    shutil.copytree(root, data)
+    before = json.loads((data / "manifest.json").read_text())
+    first = before["scenes"][0]
+    stamp = (data / first["id"] / first["inputs"][0]["file"]).stat().st_mtime_ns
+    with pytest.raises(UsageError, match="can only grow"):
+        generate(replace(TINY, scenes=TINY.scenes - 1), data, workers=1, quiet=True)
+    grown = generate(replace(TINY, scenes=TINY.scenes + 1), data, workers=1, quiet=True)
+    assert [s["id"] for s in grown["scenes"][:-1]] == [s["id"] for s in before["scenes"]]
+    assert grown["scenes"][-1]["inputs"] and grown["scenes"][-1]["references"]
+    assert (data / first["id"] / first["inputs"][0]["file"]).stat().st_mtime_ns == stamp
+    assert grown["config"]["scenes"] == TINY.scenes + 1
 
 
 @pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu"])

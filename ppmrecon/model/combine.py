@@ -198,12 +198,14 @@ def _choose(method: Method, y: torch.Tensor, k: int) -> str:
 
 
 def combine_with_weights(y: torch.Tensor, z: torch.Tensor, logits: torch.Tensor,
-                         method: Method = "auto") -> Combined:
+                         method: Method = "auto", consume: bool = False) -> Combined:
     """Eq. 6 of paper 002 and the summed weight of each ~z^j.
 
     y: (B, 3, H, W) ~y; z: (B, 4, 3, H, W) ~z^1..~z^4; logits: (B, 4 K^2, H, W) with K
     odd (inferred). Raw (uncompressed) radiance in, raw radiance out. Differentiable
     in the logits (and in y, z). See the module docstring for the numerical contract.
+    ``consume``: the logits are the caller's temporary and may be overwritten (without
+    autograd): the weights are formed in their memory, not in a new 4 K^2-plane tensor.
     """
     k = _check(y, z, logits)
     dpad = _padded_differences(y, z, k // 2)
@@ -213,7 +215,7 @@ def combine_with_weights(y: torch.Tensor, z: torch.Tensor, logits: torch.Tensor,
     # logit; a -Inf logit is legitimate (the least weight, exp(EXP_FLOOR)).
     if not bool(torch.isfinite(peak).all()):
         raise NonFiniteLogitsError("logits contain NaN/+Inf, or a pixel whose logits are all -Inf")
-    e = _stable_exp(logits - peak)
+    e = _stable_exp(logits.sub_(peak) if consume and not logits.requires_grad else logits - peak)
     path = _choose(method, y, k)
     num = (_numerator_unfold if path == "unfold" else _numerator_loop)(dpad, e, k)
     b, _, h, w = e.shape

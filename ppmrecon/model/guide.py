@@ -200,11 +200,10 @@ def guided_logits(net: torch.Tensor, y: torch.Tensor, z: torch.Tensor, guide: to
     correction = net[:, :-1] if cfg.temperature else net
     if guide is None:
         return correction
-    prior = prior_logits(y, z, guide, k)
-    if not cfg.temperature:
-        return correction + prior
-    tau = net[:, -1:].clamp(-TAU_LIMIT, TAU_LIMIT)
-    return torch.addcmul(correction, prior, torch.exp(-tau))
+    prior = prior_logits(y, z, guide, k)                 # a new tensor: summed into in place
+    if cfg.temperature:
+        prior = prior * torch.exp(-net[:, -1:].clamp(-TAU_LIMIT, TAU_LIMIT))
+    return prior.add_(correction)
 
 
 def guide_channels(guide: torch.Tensor, scale: torch.Tensor) -> torch.Tensor:
@@ -234,5 +233,7 @@ def prior_logits(y: torch.Tensor, z: torch.Tensor, guide: torch.Tensor, k: int) 
             # t^j_{c,i} - g_c = (y_i - z^j_i) + (z^j_c - g_c) at this offset, in place
             torch.add(dpad[..., row:row + h, col:col + w], z_minus_g, out=t)
             base = N_CORRELATED * (row * k + col)
-            torch.sum(t.square_(), dim=2, out=out[:, base:base + N_CORRELATED])
+            t.square_()
+            # the sum over R, G, B as two adds (torch.sum(out=) first zero-fills its output)
+            torch.add(t[:, :, 0], t[:, :, 1], out=out[:, base:base + N_CORRELATED]).add_(t[:, :, 2])
     return out.mul_(scale)

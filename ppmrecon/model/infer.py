@@ -191,7 +191,7 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
         tile = auto_tile(model, height, width)
     if tile < 1:
         raise UsageError(f"tile size must be positive, got {tile}")
-    halo = model.preset.halo
+    halo, r = model.preset.halo, model.window // 2
     rgb = torch.empty(3, height, width)
     weights = torch.empty(4, height, width)
     boxes = _tiles(height, width, tile)
@@ -203,16 +203,21 @@ def _denoise(source: InputSource, height: int, width: int, model: KPN, tile: int
         with torch.no_grad():                     # grad mode is per thread
             inp = source(slice(ya, yb), slice(xa, xb))
             logits = model.predict(inp.features.to(device), precision)
-            y, z = inp.y.to(device), inp.z.to(device)
-            planes = None if inp.guide is None else inp.guide.to(device)
-            logits = guided_logits(logits, y, z, planes, model.window, model.guide)
+            # Eq. 6 for the kept pixels needs their window's terms only: a ring of K//2
+            # pixels (the rest of the halo fed the network's receptive field)
+            ca, cb = max(y0 - ya - r, 0), min(y1 - ya + r, yb - ya)
+            cc, cd = max(x0 - xa - r, 0), min(x1 - xa + r, xb - xa)
+            crop = (..., slice(ca, cb), slice(cc, cd))
+            y, z = inp.y[crop].to(device), inp.z[crop].to(device)
+            planes = None if inp.guide is None else inp.guide[crop].to(device)
+            logits = guided_logits(logits[crop], y, z, planes, model.window, model.guide)
             try:
-                out = combine_with_weights(y, z, logits, method="loop")
+                out = combine_with_weights(y, z, logits, method="loop", consume=True)
             except NonFiniteLogitsError:
                 raise NonFiniteOutputError("the network produced NaN/Inf weights; the checkpoint is broken "
                                            "or does not fit this input") from None
             image = out.image
-        keep = (slice(None), slice(y0 - ya, y1 - ya), slice(x0 - xa, x1 - xa))
+        keep = (slice(None), slice(y0 - ya - ca, y1 - ya - ca), slice(x0 - xa - cc, x1 - xa - cc))
         rgb[:, y0:y1, x0:x1] = image[0][keep].cpu()                # tiles are disjoint: no lock needed
         weights[:, y0:y1, x0:x1] = out.weights_per_z[0][keep].cpu()
 

@@ -29,7 +29,9 @@ Scenes are split into train and validation as whole scenes (every
 render, or one chunk of a reference's passes) run in parallel: local worker processes,
 or Ray tasks on a cluster (:mod:`.raygen`, ``--ray``), which give the same files and
 manifest. Finished items (files present and valid) are skipped on a rerun, so an
-interrupted generation resumes where it stopped; an item whose worker raised (or, on
+interrupted generation resumes where it stopped, and the same configuration with more
+scenes grows a data set (scene i depends on i alone: the first ones are kept as they
+are, and a growing set can be trained on while it grows); an item whose worker raised (or, on
 Ray, failed all its retries) is recorded as failed in the manifest's ``items`` and the
 run ends with an error naming it, never dropped silently.
 
@@ -510,9 +512,13 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
     manifest: dict[str, Any] = {"version": MANIFEST_VERSION, "config": asdict(cfg), "scenes": scenes}
     if mpath.exists():
         old = load_manifest(root)
-        if stored_config(old) != _as_json(asdict(cfg)):
+        stored, wanted = stored_config(old), _as_json(asdict(cfg))
+        if {**stored, "scenes": 0} != {**wanted, "scenes": 0}:
             raise UsageError(f"{mpath}: the data set was generated with another configuration; "
                              "use a new --out folder")
+        if wanted["scenes"] < stored["scenes"]:
+            raise UsageError(f"{mpath}: the data set has {stored['scenes']} scenes; --scenes "
+                             f"{wanted['scenes']} would drop some (it can only grow)")
         manifest["generation_seconds"] = old.get("generation_seconds", 0.0)
         done = {s["id"]: s for s in old["scenes"]}
         for s in scenes:
