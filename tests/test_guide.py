@@ -207,3 +207,26 @@ def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
     y[:, 1, 2] = 20.0
     out = despike(z, y, eps=1e-3)
     assert float(out[:, 4, 4].max()) == 0.5 and float(out[:, 1, 1].min()) == 20.0
+
+
+@pytest.mark.parametrize("fraction", [0.005, 0.2])
+def test_despike_at_the_candidates_equals_the_whole_image_median(monkeypatch, fraction):
+    """The medians computed at the candidate pixels only (few spikes) or on the whole
+    image (many) give the same guide input, borders and corners included."""
+    import ppmrecon.model.guide as guide_module
+    from ppmrecon.model.guard import median3x3
+
+    gen = torch.Generator().manual_seed(3)
+    z = torch.rand(3, 23, 31, generator=gen) ** 4
+    y = torch.rand(3, 23, 31, generator=gen) ** 2 * 0.2
+    hot = torch.randperm(23 * 31, generator=gen)[:max(3, int(fraction * 23 * 31))]
+    z.view(3, -1)[:, hot] *= 1e3
+    z[:, 0, 0] = z[:, -1, -1] = 1e3                  # corners: replicate padding
+    lum, med = z.mean(0), median3x3(z)
+    ymax = torch.nn.functional.max_pool2d(y.mean(0)[None, None], 3, 1, 1)[0, 0]
+    spike = (lum > 4 * (med.mean(0) + 1e-3)) & (lum > 4 * (ymax + 1e-3))
+    expected = torch.where(spike, med, z)
+    assert bool(spike.any())
+    for dense in (0.05, 0.0, 1.0):                   # the default, always dense, never dense
+        monkeypatch.setattr(guide_module, "DENSE_SPIKES", dense)
+        assert torch.equal(guide_module.despike(z, y, eps=1e-3), expected)

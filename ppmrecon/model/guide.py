@@ -65,6 +65,9 @@ GUIDE_SOURCE = 4
 OIDN_QUALITIES = ("high", "balanced", "fast")
 #: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
 SPIKE_RATIO = 4.0
+#: :func:`despike` computes the 3 x 3 medians of the whole image when more than this
+#: fraction of its pixels are candidates (above ~y's level), else at the candidates only.
+DENSE_SPIKES = 0.05
 
 
 @dataclass(frozen=True)
@@ -151,10 +154,23 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
     from .guard import median3x3
 
     lum, ylum = source.mean(0), y.mean(0)
-    med = median3x3(source)
     ymax = torch.nn.functional.max_pool2d(ylum[None, None], 3, 1, 1)[0, 0]
-    spike = (lum > ratio * (med.mean(0) + eps)) & (lum > ratio * (ymax + eps))
-    return torch.where(spike, med, source)
+    candidate = lum > ratio * (ymax + eps)
+    rows, cols = candidate.nonzero(as_tuple=True)
+    if len(rows) > DENSE_SPIKES * lum.numel():
+        med = median3x3(source)
+        spike = candidate & (lum > ratio * (med.mean(0) + eps))
+        return torch.where(spike, med, source)
+    # few candidates (the usual case): the 3 x 3 medians at those pixels alone
+    h, w = lum.shape
+    offsets = torch.arange(-1, 2)
+    r = (rows[:, None, None] + offsets[None, :, None]).clamp(0, h - 1).expand(-1, 3, 3)
+    c = (cols[:, None, None] + offsets[None, None, :]).clamp(0, w - 1).expand(-1, 3, 3)
+    med = source[:, r, c].reshape(source.shape[0], -1, 9).median(-1).values      # (3, n): the 5th of 9
+    spike = lum[rows, cols] > ratio * (med.mean(0) + eps)
+    out = source.clone()
+    out[:, rows[spike], cols[spike]] = med[:, spike]
+    return out
 
 
 def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
