@@ -349,8 +349,9 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
     """
     if band == 0:
         return image.clamp(min=0.0)
-    lo = torch.minimum(y, z.amin(1)).clamp(min=0.0)
-    hi = torch.maximum(y, z.amax(1))
+    zmin, zmax = torch.aminmax(z, dim=1)                  # one pass over the four ~z^j
+    lo = torch.minimum(y, zmin).clamp_(min=0.0)
+    hi = torch.maximum(y, zmax)
     if band != 1:
         lo, hi = lo / band, hi * band
     return torch.minimum(torch.maximum(image, lo), hi)

@@ -153,8 +153,10 @@ class KPN(nn.Module):
         Only the weights are affected: the combiner stays float32 and consistent.
         """
         if precision == "bfloat16":
+            # one conversion of the input (autocast would copy it to channels-last, then to bf16)
+            x = x.to(torch.bfloat16, memory_format=torch.channels_last)
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
-                h = self.body(x.contiguous(memory_format=torch.channels_last))
+                h = self.body(x)
             h = h.float()
         elif precision == "float32":
             h = self.body(x)
