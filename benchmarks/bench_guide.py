@@ -14,7 +14,8 @@ Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting)
 ``kpn`` = a checkpoint as trained (``--model``, repeatable); ``+guide`` = the same with the
 guide forced on; ``guide b=B`` = the guide alone (an untrained guided model: zero head)
 with tolerance beta B and the default cross rule (2); ``guide cross=C`` = the same at
-beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default 5); ``noanchor`` = without the guard's low-frequency anchor;
+beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default 5); ``guide source=zJ`` = the same
+with OIDN's image of ~z^J as the guide (default ~z^4); ``noanchor`` = without the guard's low-frequency anchor;
 ``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
 Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
 geometric mean, the worst, and how many images are worse than their best input.
@@ -45,6 +46,7 @@ from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
 WIDTH, PHOTONS, REF_PASSES, SEED = 128, 65536, 1024, 7
 BETAS = (0.01, 0.03, 0.1)
 CROSS = (0.0, 4.0)          # the default, 2, is every 'guide b=...' row
+SOURCES = (1, 2, 3)         # the estimate OIDN denoises for the guide (default ~z^4)
 WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the default, 5, is 'guide b=0.03')
 
 
@@ -93,6 +95,9 @@ def variants(models: dict) -> dict:
     for cross in CROSS:
         g = replace(DEFAULT_GUIDE, cross=cross)
         out[f"guide cross={cross:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    for source in SOURCES:
+        g = replace(DEFAULT_GUIDE, source=source)
+        out[f"guide source=z{source}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
     base = load_preset("tiny")
     for kw in WINDOWS:
         pre = Preset(f"tiny_k{kw}", base.layers, base.filters, base.kernel, kw, base.final_kernel)
