@@ -12,6 +12,7 @@ from ppmrecon.backend import choose_variant
 
 choose_variant()
 
+import drjit as dr  # noqa: E402
 import mitsuba as mi  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
@@ -283,3 +284,19 @@ def test_direct_lighting_lowers_error_at_glossy_gather_points():
         assert res.header["ppmrecon.direct"] == direct
     print("relMSE none / all:", err)
     assert all(a < 0.85 * b for a, b in zip(err["all"], err["none"])), err
+
+
+def test_direct_light_skips_the_bsdf_sample_only_where_no_ray_reaches_an_emitter():
+    """With only delta emitters (glossy_spot: a spot light) the BSDF sample of the direct
+    light is exactly 0, so leaving it out changes no value; area lights keep it."""
+    from ppmrecon.render.direct import direct_light, rays_can_hit_emitters
+    from ppmrecon.render.eye import lambertian_table, trace_eye
+
+    assert rays_can_hit_emitters(load_scene("cornell_caustics", resolution=(8, 8)).scene)
+    loaded = load_scene("glossy_spot", resolution=(24, 24))
+    assert not rays_can_hit_emitters(loaded.scene)
+    gp = trace_eye(loaded.scene, loaded.scene.sensors()[0], 5, -1, 5, lambertian_table(loaded.scene))
+    full, bad_full = direct_light(loaded.scene, gp, gp.found, 9)
+    light, bad = direct_light(loaded.scene, gp, gp.found, 9, bsdf_sampling=False)
+    assert float(dr.max(dr.max(full))[0]) > 0 and bad == bad_full == 0
+    assert np.array_equal(np.asarray(light), np.asarray(full))

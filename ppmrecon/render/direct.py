@@ -62,11 +62,23 @@ def _mis(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
     return dr.detach(dr.select(a2 > 0.0, a2 / (a2 + dr.square(pdf_b)), 0.0))
 
 
+def rays_can_hit_emitters(scene: mi.Scene) -> bool:
+    """Whether a ray can reach an emitter of ``scene`` (an area light, an environment):
+    False when every emitter is a point, spot, projector or directional light."""
+    delta = mi.EmitterFlags.DeltaPosition | mi.EmitterFlags.DeltaDirection
+    return any(not mi.has_flag(e.flags(), delta) for e in scene.emitters())
+
+
 def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
-                 defer_counts: bool = False) -> tuple[mi.Color3f, int | mi.UInt32]:
+                 defer_counts: bool = False, bsdf_sampling: bool = True) -> tuple[mi.Color3f, int | mi.UInt32]:
     """L_direct at every gather point in ``active`` (0 elsewhere), one emitter sample and
     one BSDF sample each, random stream ``seed``; and how many non-finite samples were
-    dropped (``defer_counts``: as a one-element device value, no host read here)."""
+    dropped (``defer_counts``: as a one-element device value, no host read here).
+
+    ``bsdf_sampling=False`` leaves the BSDF sample out, which is exact where no ray can
+    reach an emitter (:func:`rays_can_hit_emitters`): every emitter sample is then a delta
+    one (MIS weight 1) and the BSDF sample's term is 0, yet it costs a ray per gather point.
+    """
     n = dr.width(gp.found)
     rng = make_rng(n, seed)
     si = gp.si
@@ -80,6 +92,9 @@ def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
     f_em, pdf_bsdf_em = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), active_em)
     w_em = dr.select(ds.delta, 1.0, _mis(ds.pdf, pdf_bsdf_em))
     l_em = dr.select(active_em, w_em * f_em * em_weight, 0.0)
+
+    if not bsdf_sampling:
+        return _finite(l_em, active, n, defer_counts)
 
     # BSDF sampling: what the sampled ray hits, if it is an emitter (or the environment).
     bs, bsdf_weight = bsdf.sample(ctx, si, rng.next_float32(), mi.Point2f(rng.next_float32(), rng.next_float32()),
@@ -95,7 +110,11 @@ def direct_light(scene: mi.Scene, gp: GatherPoints, active: mi.Bool, seed: int,
     emitter_b = si_b.emitter(scene, active_b)
     l_b = dr.select(active_b, w_b * bsdf_weight * emitter_b.eval(si_b, active_b), 0.0)
 
-    total = l_em + l_b
+    return _finite(l_em + l_b, active, n, defer_counts)
+
+
+def _finite(total: mi.Color3f, active: mi.Bool, n: int, defer_counts: bool) -> tuple[mi.Color3f, int | mi.UInt32]:
+    """``total`` with its non-finite samples set to 0, and how many there were."""
     finite = dr.all(dr.isfinite(total))
     dr.eval(total, finite)
     bad = dr.count(active & ~finite) if n else 0

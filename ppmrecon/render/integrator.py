@@ -34,7 +34,7 @@ import numpy as np
 from .. import buffers as B
 from .controllers import CHAIN_SCALES, Controller, make_controller
 from .direct import check_mode as check_direct_mode
-from .direct import direct_light, uses_direct
+from .direct import direct_light, rays_can_hit_emitters, uses_direct
 from .estimates import PlainMean, RunningMean
 from .eye import GatherPoints, lambertian_table, trace_eye
 from .gather import gather
@@ -218,6 +218,8 @@ class Renderer:
         self.seconds = 0.0
         self.radius_scene = scene_radius(scene)
         self.lambertian = lambertian_table(scene)
+        #: with only delta emitters the direct light's BSDF sample is exactly 0: skipped
+        self.bsdf_direct = rays_can_hit_emitters(scene)
         #: True while a pass has changed some accumulators but not all (see run_pass).
         self.dirty = False
 
@@ -241,7 +243,7 @@ class Renderer:
         for stream, p in zip(self._eye_streams(), points):
             use = uses_direct(p, s.direct, s.max_depth)
             light, bad = direct_light(self.scene, p, use, stream_seed(s.seed, i, DIRECT_OFFSET + stream),
-                                      defer_counts=True)
+                                      defer_counts=True, bsdf_sampling=self.bsdf_direct)
             dropped += bad
             out.append((use, light))
         return out, dropped
