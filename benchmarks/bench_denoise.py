@@ -1,6 +1,6 @@
 """Denoiser benchmark (issue 4; SPEC section 8): time per preset vs OIDN, peak memory.
 
-    .venv/bin/python benchmarks/bench_denoise.py [--presets shipped,tiny,small,paper] [--repeats 3]
+    .venv/bin/python benchmarks/bench_denoise.py [--presets shipped,tiny,small,paper] [--repeats 3] [--rounds 3]
                                                  [--threads 2] [--input BUFFER.exr] [--out DIR]
 
 Measured in one run on this machine, each measurement in its own child process (so
@@ -8,7 +8,9 @@ one's memory and thread pools cannot affect another):
   * seconds to denoise 1280x720 (network features + network + consistent combiner,
     in memory, no EXR I/O) for each preset, and for OIDN (`pyoidn`, colour + albedo +
     normal, HDR) on the ~z^1 image of the same buffer; median of --repeats runs after
-    one warm-up run (which pays one-time costs: allocator, oneDNN kernel selection);
+    one warm-up run (which pays one-time costs: allocator, oneDNN kernel selection), in
+    --rounds rounds of OIDN and every preset side by side; the ratio to OIDN is taken
+    within each round and its median reported (this machine drifts within minutes);
   * peak resident memory (ru_maxrss of the child, imports included) for 1920x1080 with
     the default preset.
 The input is a synthetic buffer (seeded: shapes and gradients, gamma noise on ~y,
@@ -146,6 +148,17 @@ def measure(spec: dict) -> dict:
     return result
 
 
+def combine_rounds(runs: list[dict], oidn: list[dict]) -> dict:
+    """One method's result over the rounds: the median of its per-round medians, the
+    fastest run, the largest peak RSS, and its per-round ratios to that round's OIDN."""
+    ratios = [r["seconds_median"] / o["seconds_median"] for r, o in zip(runs, oidn)]
+    return {**runs[0], "seconds_median": float(np.median([r["seconds_median"] for r in runs])),
+            "seconds_min": min(r["seconds_min"] for r in runs),
+            "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+            "round_medians": [r["seconds_median"] for r in runs],
+            "ratio_median": float(np.median(ratios)), "ratios": ratios}
+
+
 # ----------------------------------------------------------------------------- report
 
 def table(results: list[dict], memory: dict, default: str, meta: dict) -> str:
@@ -158,15 +171,16 @@ def table(results: list[dict], memory: dict, default: str, meta: dict) -> str:
         "timings are noisy). Threads per measurement: "
         f"{results[0]['threads']}. Input: {meta['input']}.",
         "",
-        "| method | size | precision | params | K | median s | min s | x OIDN (median) | peak RSS MB |",
-        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |",
+        "| method | size | precision | params | K | median s | min s | x OIDN (median of rounds) | "
+        "x OIDN per round | peak RSS MB |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]
     for r in results:
-        ratio = r["seconds_median"] / oidn["seconds_median"]
         name = r["method"] + (" (default)" if r["method"] == default else "")
+        per_round = " / ".join(f"{x:.2f}" for x in r["ratios"])
         lines.append(f"| {name} | {r['size']} | {r['precision']} | {r.get('parameters', '-')} | "
                      f"{r.get('window', '-')} | {r['seconds_median']:.3f} | {r['seconds_min']:.3f} | "
-                     f"{ratio:.2f} | {r['peak_rss_mb']:.0f} |")
+                     f"{r['ratio_median']:.2f} | {per_round} | {r['peak_rss_mb']:.0f} |")
     lines += [
         "",
         f"Peak memory, {memory['size']}, default preset `{default}` ({memory['precision']}): "
@@ -174,7 +188,9 @@ def table(results: list[dict], memory: dict, default: str, meta: dict) -> str:
         f"held {memory['input_rss_mb']:.0f} MB), {memory['seconds_median']:.2f} s.",
         "",
         "Times cover the whole in-memory denoise (features, network, combiner), not EXR I/O; OIDN gets the "
-        "~z^1 estimate with albedo and normal. Median of the timed runs after one warm-up run.",
+        "~z^1 estimate with albedo and normal. Per method and round: the median of the timed runs after one "
+        f"warm-up run, each method in its own child process; {len(oidn['ratios'])} rounds of OIDN and every "
+        "preset side by side, the ratio taken within each round.",
     ]
     return "\n".join(lines) + "\n"
 
@@ -202,6 +218,8 @@ def main() -> None:
     ap.add_argument("--presets", default="tiny,small,paper")
     ap.add_argument("--default", default=None, help="preset for the memory run (default: the CLI's)")
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--rounds", type=int, default=3,
+                    help="rounds of OIDN and every preset side by side (ratios are taken within a round)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--precision", default="auto", choices=("auto", "float32", "bfloat16"))
     ap.add_argument("--slow-after", type=float, default=20.0,
@@ -221,21 +239,19 @@ def main() -> None:
     base = {"threads": args.threads, "precision": args.precision, "repeats": args.repeats,
             "slow_after": args.slow_after, "input": args.input, "width": 1280, "height": 720}
     load_before = " ".join(f"{x:.2f}" for x in os.getloadavg())
-    print("timing at 1280x720:", flush=True)
-    results = [measure({**base, "method": "oidn"})]
-    for preset in args.presets.split(","):
-        results.append(measure({**base, "method": preset}))
-    results.append(measure({**base, "method": "oidn"}))       # again: was the machine as busy at the end?
+    methods = ["oidn"] + args.presets.split(",")
+    rounds = []
+    for r in range(args.rounds):
+        # OIDN and every preset side by side in each round: this machine's speed drifts by
+        # more than 10% within minutes, so a ratio is only fair between neighbouring runs
+        print(f"timing at 1280x720, round {r + 1}/{args.rounds}:", flush=True)
+        rounds.append({m: measure({**base, "method": m}) for m in methods})
     print("memory at 1920x1080:", flush=True)
     memory = measure({**base, "method": default, "input": None, "width": 1920, "height": 1080, "repeats": 1})
 
     import pyoidn
 
-    # OIDN ran first and last; report the faster median (the machine is shared).
-    oidn_runs = [r for r in results if r["method"] == "oidn"]
-    best_oidn = min(oidn_runs, key=lambda r: r["seconds_median"])
-    best_oidn["oidn_medians"] = [r["seconds_median"] for r in oidn_runs]
-    results = [best_oidn] + [r for r in results if r["method"] != "oidn"]
+    results = [combine_rounds([rd[m] for rd in rounds], [rd["oidn"] for rd in rounds]) for m in methods]
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "cpu": _cpu_name(), "cores": os.cpu_count(),
             "torch": torch.__version__, "pyoidn": getattr(pyoidn, "__version__", _dist_version("pyoidn")),
             "python": platform.python_version(), "load_before": load_before,
