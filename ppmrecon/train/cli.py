@@ -73,7 +73,9 @@ def build_parser() -> ArgumentParser:
     g.add_argument("--reference-chunks", type=positive_int, default=None,
                    help="split every reference render into this many ranges of passes, rendered as separate "
                         "items and merged exactly (overrides the config's reference_chunks)")
-    g.add_argument("--scenes", type=positive_int, default=None, help="override the number of scenes (more than an existing data set has grows it: its scenes are kept)")
+    g.add_argument("--scenes", type=positive_int, default=None,
+                   help="override the number of scenes (more than an existing data set has grows it: "
+                        "its scenes are kept)")
     g.add_argument("--families", default=None,
                    help="comma-separated scene families, overriding the config's (default: the config's; "
                         "see ppmrecon.train.scenegen)")
