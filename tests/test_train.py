@@ -275,6 +275,29 @@ def test_a_data_set_grows_with_more_scenes_and_never_shrinks(tiny_data, tmp_path
     assert grown["config"]["scenes"] == TINY.scenes + 1
 
 
+def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tmp_path):
+    """A growing data set lists scenes that have no item yet: they are skipped with one
+    summary line; a scene with some items missing still names each missing file."""
+    root, _ = tiny_data
+    data = tmp_path / "growing"
+    shutil.copytree(root, data)
+    manifest = json.loads((data / "manifest.json").read_text())
+    before = len(load_split(data, "train"))
+    scene = next(s for s in manifest["scenes"] if s["split"] == "train")
+    for n in range(2):                                 # two planned scenes, not started
+        manifest["scenes"].append({"id": f"99{n}_planned", "family": scene["family"], "seed": 99 + n,
+                                   "split": "train", "params": scene["params"]})
+    dropped = scene["inputs"].pop()                    # one item of a started scene missing
+    (data / "manifest.json").write_text(json.dumps(manifest))
+    warnings = []
+    assert len(load_split(data, "train", warn=warnings.append)) == before - 1
+    assert [w for w in warnings if "not generated yet" in w] == [
+        f"{data}: skipping 2 train scene(s) not generated yet (rerun `ppmrecon-train generate` to complete them)"]
+    assert [w for w in warnings if "partial item" in w] == [
+        f"skipping {data / scene['id'] / dropped['file']}: partial item (not in the manifest; "
+        "rerun `ppmrecon-train generate`)"]
+
+
 @pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu"])
 def test_data_configs_load(name):
     DataConfig.load(CONFIGS / f"{name}.json")

@@ -80,7 +80,7 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
     rank, world = shard or (0, 1)
     main_warn = warn if rank == 0 else (lambda msg: None)
     samples: list[Sample] = []
-    candidates = 0
+    candidates = not_started = 0
     for scene in manifest.get("scenes", []):
         if scene.get("split") != split:
             continue
@@ -92,6 +92,9 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
             continue
         promised = {input_name(n, s) for n in config.get("input_passes", []) for s in config.get("seeds", [])}
         listed = {f["file"]: f for f in scene.get("inputs", [])}
+        if not listed and not scene.get("references") and not scene.get("reference"):
+            not_started += 1                # a growing data set: counted, not listed file by file
+            continue
         for name in sorted(promised - set(listed)):
             main_warn(f"skipping {folder / name}: partial item (not in the manifest; rerun `ppmrecon-train generate`)")
         entries = [(name, entry) for name, entry in sorted(listed.items())
@@ -125,6 +128,9 @@ def load_split(root: str | os.PathLike, split: str, features: FeatureConfig = Fe
                 continue
             samples.append(Sample(str(path), scene["id"], int(entry.get("passes", 0)),
                                   inputs.features[0], inputs.y[0], inputs.z[0], reference, index, planes))
+    if not_started:
+        main_warn(f"{root}: skipping {not_started} {split} scene(s) not generated yet "
+                  "(rerun `ppmrecon-train generate` to complete them)")
     return samples
 
 
