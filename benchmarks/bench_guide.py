@@ -14,8 +14,9 @@ Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting)
 ``kpn`` = a checkpoint as trained (``--model``, repeatable); ``+guide`` = the same with the
 guide forced on; ``guide b=B`` = the guide alone (an untrained guided model: zero head)
 with tolerance beta B and the default cross rule (2); ``guide cross=C`` = the same at
-beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default 5); ``guide source=zJ`` = the same
-with OIDN's image of ~z^J as the guide (default ~z^4); ``noanchor`` = without the guard's low-frequency anchor;
+beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default
+5); ``guide source=zJ`` = the same with OIDN's image of ~z^J as the guide (default ~z^4);
+``noanchor`` = without the guard's low-frequency anchor;
 ``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
 Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
 geometric mean, the worst, and how many images are worse than their best input.

@@ -155,6 +155,16 @@ def median3x3(x: torch.Tensor) -> torch.Tensor:
     return p[4].contiguous()
 
 
+def median3x3_at(x: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> torch.Tensor:
+    """:func:`median3x3` of x (C, H, W) at the pixels (rows, cols) only, (C, n): the 5th of
+    the 9 window values, replicate padding, equal to the whole image's at those pixels."""
+    h, w = x.shape[-2:]
+    offsets = torch.arange(-1, 2, device=x.device)
+    r = (rows[:, None, None] + offsets[None, :, None]).clamp(0, h - 1).expand(-1, 3, 3)
+    c = (cols[:, None, None] + offsets[None, None, :]).clamp(0, w - 1).expand(-1, 3, 3)
+    return x[:, r, c].reshape(x.shape[0], -1, 9).median(-1).values
+
+
 def local_floor(x: torch.Tensor) -> torch.Tensor:
     """A robust local level in 6 operations instead of the median's 38: the smallest of
     the three row medians of the 3 x 3 window (replicate padding). A lone spike moves no

@@ -151,7 +151,7 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
     pixel, and the guide would then pick the spike. Spikes are replaced by the source's
     3 x 3 median. Only the weights depend on the guide, so this costs no consistency.
     """
-    from .guard import median3x3
+    from .guard import median3x3, median3x3_at
 
     lum, ylum = source.mean(0), y.mean(0)
     ymax = torch.nn.functional.max_pool2d(ylum[None, None], 3, 1, 1)[0, 0]
@@ -161,12 +161,7 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
         med = median3x3(source)
         spike = candidate & (lum > ratio * (med.mean(0) + eps))
         return torch.where(spike, med, source)
-    # few candidates (the usual case): the 3 x 3 medians at those pixels alone
-    h, w = lum.shape
-    offsets = torch.arange(-1, 2)
-    r = (rows[:, None, None] + offsets[None, :, None]).clamp(0, h - 1).expand(-1, 3, 3)
-    c = (cols[:, None, None] + offsets[None, None, :]).clamp(0, w - 1).expand(-1, 3, 3)
-    med = source[:, r, c].reshape(source.shape[0], -1, 9).median(-1).values      # (3, n): the 5th of 9
+    med = median3x3_at(source, rows, cols)          # few candidates (the usual case): (3, n)
     spike = lum[rows, cols] > ratio * (med.mean(0) + eps)
     out = source.clone()
     out[:, rows[spike], cols[spike]] = med[:, spike]
