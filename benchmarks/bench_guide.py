@@ -11,12 +11,16 @@ two seeds, cached in ``--ref-cache``, rendered there when missing). ``--data``: 
 validation image of a generated data set (never trained on) against its own reference.
 
 Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
-``kpn`` = a checkpoint as trained (``--model``, repeatable); ``+guide`` = the same with the
-guide forced on; ``guide b=B`` = the guide alone (an untrained guided model: zero head)
-with tolerance beta B and the default cross rule (2); ``guide cross=C`` = the same at
+``kpn`` = a checkpoint as shipped (``--model``, repeatable); ``+guide`` = the same with the
+guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode;
+``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta B and the default cross rule (2); ``guide cross=C`` = the same at
 beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default
 5); ``guide source=zJ`` = the same with OIDN's image of ~z^J as the guide (default ~z^4);
-``noanchor`` = without the guard's low-frequency anchor;
+``noanchor`` = without the guard's low-frequency anchor; ``envelope k=K`` = the guide
+itself held inside the range of each pixel's five estimates (``GuideConfig.mode =
+"envelope"``, no network), its anchor acting where the gap to ~z^3's low-pass exceeds K x
+that low-pass's variance (1e-6: the plain anchor; default K = 1), ``envelope anchor=zM``
+the same anchored to ~z^M, ``envelope noanchor`` without it;
 ``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
 Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
 geometric mean, the worst, and how many images are worse than their best input.
@@ -48,7 +52,10 @@ WIDTH, PHOTONS, REF_PASSES, SEED = 128, 65536, 1024, 7
 BETAS = (0.01, 0.03, 0.1)
 CROSS = (0.0, 4.0)          # the default, 2, is every 'guide b=...' row
 SOURCES = (1, 2, 3)         # the estimate OIDN denoises for the guide (default ~z^4)
-WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the default, 5, is 'guide b=0.03')
+WINDOWS = (3, 7, 9)
+#: the envelope's anchor_noise k (1e-6: the plain anchor wherever there is any gap)
+ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
+ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)         # the combiner's window K for the guide alone (the default, 5, is 'guide b=0.03')
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -82,6 +89,9 @@ def variants(models: dict) -> dict:
             if not net.features.guide:   # a model that reads the guide cannot run without it
                 out[f"{name} -guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
                                                                                    guide=GuideConfig()).rgb
+            other = "weights" if net.guide.mode == "envelope" else "envelope"
+            g = replace(net.guide, mode=other, temperature=net.guide.temperature and other == "weights")
+            out[f"{name} {other}"] = lambda buf, net=net, guard=guard, g=g: denoise(buf, net, guard=guard, guide=g).rgb
             for quality in OIDN_QUALITIES:
                 if quality != net.guide.quality:
                     g = replace(net.guide, quality=quality)
@@ -99,6 +109,15 @@ def variants(models: dict) -> dict:
     for source in SOURCES:
         g = replace(DEFAULT_GUIDE, source=source)
         out[f"guide source=z{source}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    # the guide's envelope: OIDN's image held in the range of the five estimates, no network
+    for k in ENVELOPE_NOISE:
+        g = replace(DEFAULT_GUIDE, mode="envelope", anchor_noise=k)
+        out[f"envelope k={k:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    for m in ENVELOPE_ANCHORS:
+        g = replace(DEFAULT_GUIDE, mode="envelope", anchor_source=m)
+        out[f"envelope anchor=z{m}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+    g = replace(DEFAULT_GUIDE, mode="envelope")
+    out["envelope noanchor"] = lambda buf, g=g: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0), guide=g).rgb
     base = load_preset("tiny")
     for kw in WINDOWS:
         pre = Preset(f"tiny_k{kw}", base.layers, base.filters, base.kernel, kw, base.final_kernel)
@@ -305,7 +324,7 @@ def main() -> None:
     if val_rows:
         lines += ["", f"## Validation images of `{args.data}` (every N)", "", *table(report["summary_validation"])]
         # the trained models and the guide alone, per family and N (every variant would not fit a page)
-        chosen = [n for n in names if n in models or n in ("oidn(z4)", "guide b=0.03")]
+        chosen = [n for n in names if n in models or n in ("oidn(z4)", "guide b=0.03", "envelope k=1")]
         lines += ["", "### Per family and N (validation)", "",
                   "Geometric means of relMSE / 8x8-block relMSE over the best input. Reference error: the "
                   "reference's own relMSE estimated from its two independent halves (|a - b|^2 / 4), as a share "

@@ -143,17 +143,19 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
-            tile: int | None = None, device: str = "cpu", precision: str = "auto") -> np.ndarray:
-    """The consistent learned reconstruction of a render (paper 002 Eq. 6): (H, W, 3) float32.
+            guide_mode: str | None = None, tile: int | None = None, device: str = "cpu", precision: str = "auto") -> np.ndarray:
+    """The consistent reconstruction of a render (paper 002 Eq. 6 or the guide's envelope): (H, W, 3) float32.
 
     ``buffers``: a :class:`BufferFile` (what :func:`render` returns) or the path of a
     buffer file. ``model``: None for the model shipped with ppmrecon, a checkpoint path,
     or a loaded model (:func:`load_model`). ``guard``: the firefly guard, ``on``
     (default), ``off`` or ``model`` (as the checkpoint was trained), as
-    ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4 steering
-    the weights), likewise; ``guide_quality``: OIDN's mode for the guide (``high``,
-    ``balanced``, ``fast``; None: the model's); ``tile``, ``device``, ``precision`` as its
-    options.
+    ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4),
+    likewise; ``guide_quality``: OIDN's mode for the guide (``high``, ``balanced``,
+    ``fast``; None: the model's); ``guide_mode``: ``envelope`` (OIDN's image held inside
+    the range of each pixel's five estimates) or ``weights`` (the prior of Eq. 6's
+    weights, corrected by the network; None: the model's), as ``--guide-mode``; ``tile``,
+    ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
     >>> buf = ppmrecon.render("plane_point", passes=2, photons=4096, resolution=16)
@@ -163,7 +165,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import guard_choice, guide_choice, torch_device, with_guide_quality
+    from .model.cli import guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -175,6 +177,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     net = load_model(model)
     chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
                                 "guide=")
+    chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

@@ -14,12 +14,14 @@ import argparse
 import json
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint  # noqa: E402
+from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
+from ppmrecon.model.guide import GUIDE_MODES  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
@@ -27,6 +29,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, help="run folder of `ppmrecon-train fit`")
     ap.add_argument("--checkpoint", default="best.pt")
+    ap.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
+                    help="ship with the denoiser guide in this mode (default: as trained); the choice "
+                         "should come from held-out figures: give them with --bench")
+    ap.add_argument("--bench", type=Path, default=None,
+                    help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
     args = ap.parse_args()
     ckpt_path = args.run / args.checkpoint
     ckpt = load_checkpoint(ckpt_path)
@@ -47,7 +54,15 @@ def main() -> None:
     v = meta["val"]
 
     DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(ckpt_path, DEFAULT_MODEL)
+    trained_guide = ckpt.model.guide
+    if args.guide_mode and args.guide_mode != trained_guide.mode:
+        if not trained_guide.enabled:
+            sys.exit(f"ship_model: --guide-mode: {ckpt_path} was trained without the guide")
+        ckpt.model.guide = replace(trained_guide, mode=args.guide_mode,
+                                   temperature=trained_guide.temperature and args.guide_mode == "weights")
+        save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "trained_guide": trained_guide.to_dict()})
+    else:
+        shutil.copyfile(ckpt_path, DEFAULT_MODEL)
 
     import matplotlib
 
@@ -81,9 +96,14 @@ def main() -> None:
         f"| inputs | {ckpt.model.features.n_channels} channels (5 estimates, 5 variances, albedo, normal, depth; "
         f"optional features {ckpt.model.features.to_dict()}), SPPM buffer files |",
         f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; applied in training as at inference) |",
-        f"| denoiser guide | {ckpt.model.guide.to_dict()} (ppmrecon/model/guide.py: OIDN of ~z^{ckpt.model.guide.source} "
-        "sets prior logits; the network's logits are a correction to them, in training as at inference) |"
-        if ckpt.model.guide.enabled else "| denoiser guide | off |",
+        (f"| denoiser guide | {trained_guide.to_dict()} in training (ppmrecon/model/guide.py: OIDN of "
+         f"~z^{trained_guide.source} sets prior logits; the network's logits are a correction to them) |"
+         if trained_guide.enabled else "| denoiser guide | off |"),
+        *([f"| shipped reconstruction | guide mode `envelope` ({ckpt.model.guide.to_dict()}): OIDN's image held "
+           "inside the range of each pixel's five estimates, anchored at low frequencies to "
+           f"~z^{ckpt.model.guide.anchor_source} where they differ by more than its noise; the network is not "
+           "run (`ppmrecon-denoise --guide-mode weights` runs it, as trained) |"]
+          if ckpt.model.guide.enabled and ckpt.model.guide.mode == "envelope" else []),
         f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
         f"({', '.join(families)}), {n_train} train / {n_val} validation (split by scene), "
         f"{cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
@@ -121,6 +141,18 @@ def main() -> None:
         lines += ["", "The validation set changed during training (the run was resumed on a data set that had "
                   "grown): from epoch " + ", from epoch ".join(f"{e}: {len(k) or 'unrecorded'} images" for e, k in sets)
                   + "; `best.pt` compares only epochs validated on the same images."]
+    if args.bench:
+        bench = json.loads(args.bench.read_text())
+        lines += ["", f"Held-out figures from `{args.bench}` (`benchmarks/bench_guide.py`; relMSE and 8x8-block "
+                  "relMSE over each image's best single input, geometric means):", "",
+                  "| images | variant | relMSE / best | worst | worse than best | <= 0.5x | 8x8 / best | 8x8 <= best |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|"]
+        for label, key in (("study scenes", "summary_scenes"), ("validation", "summary_validation")):
+            for row in bench.get(key, []):
+                if row["variant"].split(" ")[0] in bench.get("models", {}) or row["variant"] == "oidn(z4)":
+                    lines.append(f"| {label} ({row['images']}) | {row['variant']} | {row['geomean']:.3f} | "
+                                 f"{row['worst']:.2f} | {row['worse_than_best']} | {row['at_most_half']} | "
+                                 f"{row['geomean_8x8']:.3f} | {row['block_not_worse']} |")
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
               "benchmarks/results/guide/guide.md, quality.md, curves.md, guard.md, anchor.md."]

@@ -390,6 +390,8 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
         C.load_checkpoint(path)
     # the shipped model is issue 12's recipe: trained with the guard and the new features
     assert shipped.guard == DEFAULT_ON and shipped.features == FeatureConfig(scale_free=True, outliers=True)
+    # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py)
+    assert shipped.guide.enabled and shipped.guide.mode == "envelope"
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
@@ -407,8 +409,9 @@ def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
         ref = combine(inp.y, inp.z, logits).clamp(min=0)[0].permute(1, 2, 0).numpy()
         np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-6)
         assert shipped.guide.enabled
-        guided = denoise(buf, shipped, precision="float32", guard=GuardConfig()).rgb
-        prior = prior_logits(inp.y, inp.z, buffer_guide(buf, shipped.guide, GuardConfig()), shipped.window)
+        weights = replace(shipped.guide, mode="weights")
+        guided = denoise(buf, shipped, precision="float32", guard=GuardConfig(), guide=weights).rgb
+        prior = prior_logits(inp.y, inp.z, buffer_guide(buf, weights, GuardConfig()), shipped.window)
         ref = combine(inp.y, inp.z, logits + prior).clamp(min=0)[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(guided, ref, rtol=1e-4, atol=1e-5)
 

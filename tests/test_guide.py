@@ -127,7 +127,7 @@ def test_cli_guide_switch_and_header(tmp_path):
                          "-o", str(tmp_path / "off.exr")]) == 0
     on, h_on = B.read_rgb(tmp_path / "on.exr")
     off, h_off = B.read_rgb(tmp_path / "off.exr")
-    assert h_on["ppmrecon.guide"] == "oidn(z4, fast) beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
+    assert h_on["ppmrecon.guide"] == "oidn(z4, fast) weights beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
     assert not np.allclose(on, off)
     planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
     assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())
@@ -153,7 +153,7 @@ def test_guide_quality_option(tmp_path, capsys):
         assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q",
                              "--guide-quality", q, "-o", str(out)]) == 0
         images[q], header = B.read_rgb(out)
-        assert header["ppmrecon.guide"] == f"oidn(z4, {q}) beta=0.03 cross=2"
+        assert header["ppmrecon.guide"] == f"oidn(z4, {q}) weights beta=0.03 cross=2"
     assert not np.array_equal(images["high"], images["fast"])
     np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_quality="high"), images["high"])
     assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide", "off",
@@ -230,3 +230,80 @@ def test_despike_at_the_candidates_equals_the_whole_image_median(monkeypatch, fr
     for dense in (0.05, 0.0, 1.0):                   # the default, always dense, never dense
         monkeypatch.setattr(guide_module, "DENSE_SPIKES", dense)
         assert torch.equal(guide_module.despike(z, y, eps=1e-3), expected)
+
+
+# ------------------------------------------------------------------- envelope mode
+
+ENVELOPE = replace(DEFAULT_GUIDE, mode="envelope")
+
+
+def test_envelope_stays_within_each_pixels_five_estimates_and_runs_no_network(tmp_path):
+    """The guide's envelope: every output value lies between the smallest and largest of
+    the pixel's five (guarded) estimates, per channel; the network is never called (a
+    model whose weights are NaN gives the same image); no weights come back."""
+    from ppmrecon.model.guard import guard_buffer
+
+    buf = make_buffer(32, 32, seed=11)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
+    out = denoise(buf, model)
+    assert out.weights_per_z is None and out.rgb.shape == (32, 32, 3)
+    est = guard_buffer(buf, DEFAULT_ON).estimates                    # (5, H, W, 3)
+    lo, hi = est.min(0), est.max(0)
+    assert bool(((out.rgb >= lo - 1e-6 * np.abs(lo)) & (out.rgb <= hi + 1e-6 * np.abs(hi))).all())
+    with torch.no_grad():
+        for p in model.parameters():
+            p.fill_(float("nan"))
+    np.testing.assert_array_equal(denoise(buf, model).rgb, out.rgb)
+
+
+def test_envelope_returns_the_estimates_when_they_agree():
+    """Converged inputs (all five estimates equal) give back exactly that image, whatever
+    OIDN makes of it: the envelope is consistent by construction."""
+    buf = make_buffer(24, 24, seed=12)
+    same = np.repeat(buf.estimates[4:5], 5, axis=0)
+    buf = replace(buf, estimates=same)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
+    np.testing.assert_array_equal(denoise(buf, model).rgb, same[0])
+
+
+def test_anchor_where_biased_acts_only_beyond_the_anchors_noise():
+    """a -> 1 (the plain anchor) where the anchor's low-pass is exact, a -> 0 where its
+    variance dwarfs the gap; lowpass_variance of a constant V is V (sum g^2)^2."""
+    from ppmrecon.model.guard import anchor_low_frequencies, anchor_where_biased, lowpass_variance
+
+    gen = torch.Generator().manual_seed(0)
+    image = torch.rand(1, 3, 20, 20, generator=gen)
+    anchor = image + 0.3 * torch.rand(1, 3, 20, 20, generator=gen)
+    plain = anchor_low_frequencies(image, anchor, 1.5)
+    exact = anchor_where_biased(image, anchor, torch.zeros(1, 1, 20, 20), 1.5, 1.0)
+    np.testing.assert_allclose(exact.numpy(), plain.numpy(), rtol=1e-5, atol=1e-6)
+    noisy = anchor_where_biased(image, anchor, torch.full((1, 1, 20, 20), 1e6), 1.5, 1.0)
+    np.testing.assert_allclose(noisy.numpy(), image.numpy(), atol=1e-5)
+    assert torch.equal(anchor_where_biased(image, image, torch.ones(1, 1, 20, 20), 1.5, 1.0), image)
+    v = lowpass_variance(torch.full((1, 1, 16, 16), 2.0), 1.5)
+    assert v.shape == (1, 1, 16, 16)
+    # the 1-D taps squared and summed, squared again for the two axes
+    t = torch.exp(-0.5 * (torch.arange(-5, 6, dtype=torch.float32) / 1.5) ** 2)
+    t = t / t.sum()
+    np.testing.assert_allclose(v.numpy(), 2.0 * float(t.square().sum()) ** 2, rtol=1e-5)
+
+
+def test_cli_guide_mode(tmp_path):
+    """--guide-mode picks the mode (the header says which); --weights-layers has no
+    weights to write in envelope mode: one clear error, exit 2; the API takes guide_mode."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=13)
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q"]
+    assert denoise_main(args + ["--guide-mode", "envelope", "-o", str(tmp_path / "env.exr")]) == 0
+    env, header = B.read_rgb(tmp_path / "env.exr")
+    assert header["ppmrecon.guide"] == "oidn(z4, fast) envelope anchor=z3 k=1 cross=2"
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope"), env)
+    assert denoise_main(args + ["--guide-mode", "envelope", "--weights-layers", "-o", str(tmp_path / "x.exr")]) == 2
+    assert not (tmp_path / "x.exr").exists()
+    assert denoise_main(args + ["--guide-mode", "weights", "--weights-layers", "-o", str(tmp_path / "w.exr")]) == 0
+    assert denoise_main(args + ["--guide", "off", "--guide-mode", "envelope"]) == 2
+    with pytest.raises(ValueError, match="mode"):
+        GuideConfig(enabled=True, mode="blend")

@@ -37,7 +37,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, OIDN_QUALITIES, GuideConfig
+from .guide import DEFAULT_GUIDE, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -92,6 +92,10 @@ def build_parser() -> ArgumentParser:
                         "the checkpoint's guide settings if it has them), 'model' = as the checkpoint "
                         "was trained, 'off'; with --init-checkpoint, 'on' stores it in the new model "
                         "(default there: off)")
+    p.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
+                   help="how the guide enters: 'envelope' = OIDN's image held inside the range of each "
+                        "pixel's five estimates (no network), 'weights' = the prior of Eq. 6's weights, "
+                        "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
@@ -147,6 +151,19 @@ def guide_choice(choice: str, model_guide: GuideConfig) -> GuideConfig:
     """The denoiser guide to run with, chosen as :func:`guard_choice` chooses the guard
     (on without the model's: :data:`.guide.DEFAULT_GUIDE`)."""
     return _choice(choice, model_guide, GuideConfig(), DEFAULT_GUIDE)
+
+
+def with_guide_mode(guide: GuideConfig, mode: str | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` in mode ``mode`` ("weights" or "envelope"; None: unchanged), named in the
+    one-line error as :func:`with_guide_quality` names its option. A learned temperature
+    belongs to the weights and is dropped in the envelope."""
+    if mode is None:
+        return guide
+    if mode not in GUIDE_MODES:
+        raise UsageError(f"{option} must be one of {', '.join(GUIDE_MODES)}, got {mode!r}")
+    if not guide.enabled:
+        raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
+    return replace(guide, mode=mode, temperature=guide.temperature and mode == "weights")
 
 
 def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, switch: str) -> GuideConfig:
@@ -226,6 +243,10 @@ def _main(argv: Sequence[str] | None = None) -> int:
         guard = replace(guard, anchor=args.anchor)
     guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
                                "--guide")
+    guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
+    if args.weights_layers and guide.enabled and guide.mode == "envelope":
+        raise UsageError("--weights-layers: the guide's envelope has no combination weights "
+                         "(use --guide-mode weights, or --guide off)")
     for src, out in zip(inputs, outputs):
         _denoise_one(args, src, out, model, model_path, device, guard, guide)
     return 0
@@ -255,12 +276,15 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
                    H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0,
-                   H_GUIDE: (f"oidn(z{guide.source}, {guide.quality}) beta={guide.beta:g} cross={guide.cross:g}"
-                             if guide.enabled else "off")})
+                   H_GUIDE: (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} "
+                             + (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
+                                else f"beta={guide.beta:g}")
+                             + f" cross={guide.cross:g}" if guide.enabled else "off")})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape
-        print(f"{out}: {w}x{h} denoised with '{model.preset.name}' in {seconds:.2f} s")
+        how = "the guide's envelope" if guide.enabled and guide.mode == "envelope" else f"'{model.preset.name}'"
+        print(f"{out}: {w}x{h} denoised with {how} in {seconds:.2f} s")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -369,24 +369,60 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
 
 # ------------------------------------------------------------- low-frequency anchor
 
+def _gaussian_taps(sigma: float, like: torch.Tensor) -> torch.Tensor:
+    """Normalised Gaussian taps of standard deviation ``sigma`` px, truncated at 3 sigma."""
+    radius = max(1, math.ceil(3.0 * sigma))
+    t = torch.arange(-radius, radius + 1, dtype=like.dtype, device=like.device)
+    g = torch.exp(-0.5 * (t / sigma) ** 2)
+    return g / g.sum()
+
+
+def _separable(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
+    """``x`` (B, C, H, W) filtered by ``taps`` along rows and columns, replicate padding."""
+    radius, c = len(taps) // 2, x.shape[1]
+    x = F.pad(x, (radius, radius, radius, radius), mode="replicate")
+    x = F.conv2d(x, taps.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
+    return F.conv2d(x, taps.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+
+
 def gaussian_lowpass(x: torch.Tensor, sigma: float) -> torch.Tensor:
     """Separable Gaussian blur of x (B, C, H, W), standard deviation ``sigma`` pixels,
     truncated at 3 sigma and renormalised, replicate padding (a linear, mean-preserving
     low-pass whose weights do not depend on the image). Differentiable."""
-    radius = max(1, math.ceil(3.0 * sigma))
-    t = torch.arange(-radius, radius + 1, dtype=x.dtype, device=x.device)
-    g = torch.exp(-0.5 * (t / sigma) ** 2)
-    g = g / g.sum()
-    c = x.shape[1]
-    x = F.pad(x, (radius, radius, radius, radius), mode="replicate")
-    x = F.conv2d(x, g.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-    return F.conv2d(x, g.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    return _separable(x, _gaussian_taps(sigma, x))
 
 
 def anchor_low_frequencies(image: torch.Tensor, anchor: torch.Tensor, sigma: float) -> torch.Tensor:
     """``image + G_sigma * (anchor - image)``: the high frequencies of ``image`` over the low
     frequencies of ``anchor`` (both (B, 3, H, W))."""
     return image + gaussian_lowpass(anchor - image, sigma)
+
+
+def lowpass_variance(variance: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Variance of ``G_sigma * X`` for pixels with independent errors of variance
+    ``variance`` (B, C, H, W): ``sum_k g_k^2 V_{c-k}``, the same separable Gaussian as
+    :func:`gaussian_lowpass` with squared taps (a lower bound where neighbours share photons)."""
+    return _separable(variance, _gaussian_taps(sigma, variance).square())
+
+
+def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_variance: torch.Tensor,
+                        sigma: float, k: float) -> torch.Tensor:
+    """The low-frequency anchor applied as far as the gap is larger than the anchor's noise:
+
+        yhat' = yhat + a D,   D = G_sigma * (anchor - yhat),   a = |D|^2 / (|D|^2 + k Var(G_sigma * anchor))
+
+    with |D|^2 the mean over R, G, B and Var from :func:`lowpass_variance` of the anchor's
+    per-pixel variance of the mean (buffer layer ``V``, (B, 1, H, W)). Where ``yhat``'s low
+    frequencies differ from the anchor's by more than the anchor's own noise (a smooth bias
+    of ``yhat``, e.g. a denoiser darkening a glossy wall) a -> 1, the plain anchor; where the
+    gap is within that noise a -> 0 and ``yhat`` keeps its (lower-variance) low frequencies.
+    a lies in [0, 1] and D -> 0 as the inputs converge, so the correction vanishes.
+    """
+    gap = gaussian_lowpass(anchor - image, sigma)
+    gap2 = gap.square().mean(1, keepdim=True)
+    noise = k * lowpass_variance(anchor_variance, sigma)
+    a = torch.where(gap2 > 0, gap2 / (gap2 + noise).clamp(min=torch.finfo(gap2.dtype).tiny), torch.zeros_like(gap2))
+    return image + a * gap
 
 
 def finish(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:

@@ -50,7 +50,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 import torch
@@ -59,10 +59,15 @@ from ..errors import UsageError
 from ..fileio import unknown_keys
 from .combine import N_CORRELATED, N_RGB, _padded_differences
 
+if TYPE_CHECKING:
+    from .guard import GuardConfig
+
 #: Estimate the guide denoises: ~z^4, the widest bandwidth (lowest variance) of the five.
 GUIDE_SOURCE = 4
 #: OIDN's quality modes (pyoidn's names).
 OIDN_QUALITIES = ("high", "balanced", "fast")
+#: How the guide enters the reconstruction (:attr:`GuideConfig.mode`).
+GUIDE_MODES = ("weights", "envelope")
 #: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
 SPIKE_RATIO = 4.0
 #: :func:`despike` computes the 3 x 3 medians of the whole image when more than this
@@ -87,6 +92,16 @@ class GuideConfig:
     #: the network also predicts a per-pixel log-temperature tau of the prior:
     #: logits = prior * exp(-tau) + correction (see :func:`guided_logits`)
     temperature: bool = False
+    #: how the guide enters: "weights" = the prior of Eq. 6's weights (the network adds its
+    #: correction); "envelope" = the output is the guide held inside the range of the
+    #: pixel's five estimates (:func:`envelope`; the network is not run)
+    mode: str = "weights"
+    #: envelope mode: the low-frequency anchor to ~z^(anchor_source) acts where the gap
+    #: exceeds ``anchor_noise`` times the variance of that estimate's low-pass
+    #: (:func:`.guard.anchor_where_biased`); ~z^3, not the widest ~z^4, whose bandwidth
+    #: bias next to bright caustics the anchor would otherwise bring back
+    anchor_noise: float = 1.0
+    anchor_source: int = 3
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -104,6 +119,15 @@ class GuideConfig:
         if self.quality not in OIDN_QUALITIES:
             raise ValueError(f"guide setting 'quality' must be one of {', '.join(OIDN_QUALITIES)}, "
                              f"got {self.quality!r}")
+        if self.mode not in GUIDE_MODES:
+            raise ValueError(f"guide setting 'mode' must be one of {', '.join(GUIDE_MODES)}, got {self.mode!r}")
+        if self.mode == "envelope" and self.temperature:
+            raise ValueError("guide setting 'temperature' shapes Eq. 6's weights: it has no meaning in 'envelope' mode")
+        if isinstance(self.anchor_noise, bool) or not isinstance(self.anchor_noise, (int, float)) \
+                or not math.isfinite(self.anchor_noise) or self.anchor_noise <= 0:
+            raise ValueError(f"guide setting 'anchor_noise' must be a number > 0, got {self.anchor_noise!r}")
+        if isinstance(self.anchor_source, bool) or self.anchor_source not in range(1, 5):
+            raise ValueError(f"guide setting 'anchor_source' must be a ~z index 1..4, got {self.anchor_source!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -187,6 +211,36 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
+
+
+def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
+             guard: GuardConfig, cfg: GuideConfig) -> torch.Tensor:
+    """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
+
+        e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
+        e'  = e + a G_sigma * (~z^m - e)                          (:func:`.guard.anchor_where_biased`)
+        out = clamp(e', min_k X_{k,c}, max_k X_{k,c})
+
+    ``guide`` (B, 4, H, W) the planes of :func:`guide_planes` (only R, G, B are used), y
+    (B, 3, H, W) and z (B, 4, 3, H, W) the guarded inputs, ``anchor_variance`` (B, 1, H, W)
+    the variance of the mean of ~z^m, m = ``cfg.anchor_source``; sigma = ``guard.anchor``
+    (0: no anchor), k = ``cfg.anchor_noise``. Consistent: the five estimates of pixel c converge to its truth
+    x_c, so does anything clamped between them (the guard's output band with h = 1), and
+    the anchor's correction vanishes. Measured (``benchmarks/bench_guide.py``, variant
+    ``envelope``) against Eq. 6 with the guide as prior: see the README.
+    Why it can beat Eq. 6 with the same guide: the softmax over the 4 K^2 terms near g
+    averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
+    itself wherever the pixel's estimates leave room for it.
+    """
+    from .guard import anchor_where_biased, output_band
+
+    band = guard.band if guard.enabled and guard.band else 1.0
+    held = output_band(guide[:, :N_RGB], y, z, band)
+    if guard.enabled and guard.anchor > 0:
+        held = output_band(anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor,
+                                               cfg.anchor_noise),
+                           y, z, band)
+    return held
 
 
 #: Bound of the learned log-temperature: the prior is at most e^4 ~ 55x sharper or flatter.

@@ -9,7 +9,9 @@ clamped into the band of its five inputs; without it, the combination is clamped
 (radiance is nonnegative). Both keep the result consistent. With the model's denoiser
 guide (:mod:`.guide`; likewise on when asked), OIDN's image of the guarded ~z^4 is made
 once on the whole image and every tile's logits are the network's plus the guide's prior
-(:func:`.guide.prior_logits`): only the weights change, so consistency does not. The image is processed
+(:func:`.guide.prior_logits`): only the weights change, so consistency does not. In the
+guide's "envelope" mode the network and Eq. 6 are skipped: the output is OIDN's image held
+inside the range of each pixel's five estimates (:func:`.guide.envelope`). The image is processed
 in square tiles. Each tile is extended by a halo of
 ``receptive radius + K//2`` pixels (clipped at the image border), so the logits and the
 window of every kept pixel see exactly what they would see on the whole image: tiled
@@ -32,7 +34,7 @@ from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale
-from .guide import GuideConfig, guide_planes, guided_logits
+from .guide import GuideConfig, envelope, guide_planes, guided_logits
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -46,8 +48,9 @@ ProgressFn = Callable[[int, int], None]
 
 
 class Denoised(NamedTuple):
-    rgb: np.ndarray             # (H, W, 3) float32
-    weights_per_z: np.ndarray   # (4, H, W) float32: sum_i w^j_{c,i}, the share of ~z^j
+    rgb: np.ndarray                    # (H, W, 3) float32
+    weights_per_z: np.ndarray | None   # (4, H, W) float32: sum_i w^j_{c,i}, the share of ~z^j;
+    #                                    None for the guide's envelope (no Eq. 6 weights)
 
 
 class NonFiniteOutputError(PpmreconError):
@@ -134,7 +137,9 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     feature tensor is ever held. ``guard`` overrides the model's firefly guard
     (:attr:`KPN.guard`); the guard is consistent, so switching it on never changes
     what the result converges to. ``guide`` likewise overrides the model's denoiser
-    guide (:attr:`KPN.guide`, :mod:`.guide`), which only shapes the weights.
+    guide (:attr:`KPN.guide`, :mod:`.guide`): in "weights" mode it only shapes the weights;
+    in "envelope" mode the result is the guide held in the range of each pixel's five
+    estimates (:func:`.guide.envelope`), the network is not run and ``weights_per_z`` is None.
     """
     guard = model.guard if guard is None else guard
     guide = model.guide if guide is None else guide
@@ -146,6 +151,8 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     from_buffer(buf, replace(model.features, guide=False), (slice(0, 1), slice(0, 1)), scales)
     scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
     planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
+    if guide.enabled and guide.mode == "envelope":
+        return _envelope(buf, planes, guard, guide, device, progress)
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales, planes)
@@ -165,6 +172,22 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
         scale = float(image_scale(est))
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
     return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, scale, floor)
+
+
+def _envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
+              device: str | torch.device, progress: ProgressFn | None) -> Denoised:
+    """The guide's envelope (:func:`.guide.envelope`) of a whole (guarded) buffer file: no
+    network, no tiles (a few whole-image passes of elementwise work and one blur)."""
+    device = torch.device(device)
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
+    variance = torch.from_numpy(np.ascontiguousarray(buf.variances[guide.anchor_source], np.float32))
+    with torch.no_grad():
+        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance[None, None].to(device), guard, guide)
+    if progress is not None:
+        progress(1, 1)
+    if not torch.isfinite(image).all():
+        raise NonFiniteOutputError("the envelope produced NaN/Inf (radiance beyond float32 range?)")
+    return Denoised(image[0].permute(1, 2, 0).contiguous().cpu().numpy(), None)
 
 
 def _finish(combined: Denoised, y: torch.Tensor, z: torch.Tensor, guard: GuardConfig) -> Denoised:
