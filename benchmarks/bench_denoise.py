@@ -17,7 +17,7 @@ The input is a synthetic buffer (seeded: shapes and gradients, gamma noise on ~y
 blurred weaker noise on ~z^j) unless --input gives a rendered one. Weights are
 untrained (timing and memory do not depend on their values), except ``shipped``: the
 default checkpoint with its firefly guard and denoiser guide (OIDN inside), as
-``ppmrecon-denoise`` runs it.
+``ppmrecon-denoise`` runs it (in the guide's envelope mode that is no network at all).
 Writes `denoise.md`, `denoise.json` and `denoise.png` into --out.
 """
 
@@ -118,7 +118,10 @@ def worker(spec: dict) -> dict:
         def run() -> None:
             out = denoise(buf, model, precision=precision)
             assert np.isfinite(out.rgb).all()
-        extra = {"precision": precision, "parameters": parameter_count(model), "window": model.window}
+        if model.guide.enabled and model.guide.mode == "envelope":   # the guide's envelope runs no network
+            extra = {"precision": "guide envelope (no network)"}
+        else:
+            extra = {"precision": precision, "parameters": parameter_count(model), "window": model.window}
     times = []
     for i in range(spec["repeats"] + 1):
         t0 = time.perf_counter()
@@ -187,7 +190,8 @@ def table(results: list[dict], memory: dict, default: str, meta: dict) -> str:
         f"**{memory['peak_rss_mb']:.0f} MB** resident (target < 4096 MB; the process after reading the input "
         f"held {memory['input_rss_mb']:.0f} MB), {memory['seconds_median']:.2f} s.",
         "",
-        "Times cover the whole in-memory denoise (features, network, combiner), not EXR I/O; OIDN gets the "
+        "Times cover the whole in-memory denoise (guard, guide, features, network, combiner, as the model's "
+        "settings ask), not EXR I/O; OIDN gets the "
         "~z^1 estimate with albedo and normal. Per method and round: the median of the timed runs after one "
         f"warm-up run, each method in its own child process; {len(oidn['ratios'])} rounds of OIDN and every "
         "preset side by side, the ratio taken within each round.",
