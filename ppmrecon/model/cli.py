@@ -3,7 +3,7 @@
     ppmrecon-denoise INPUT.exr [INPUT.exr | 'PATTERN*.exr' ...] [--model CKPT]
                      [--output OUT.exr] [--tile N] [--weights-layers] [--device cpu|cuda]
                      [--threads N] [--guard model|on|off] [--guide model|on|off]
-                     [--guide-quality high|balanced|fast] [--quiet]
+                     [--guide-quality high|balanced|fast] [--guide-mode envelope|weights] [--quiet]
     ppmrecon-denoise --init-checkpoint CKPT [--preset tiny|small|paper|FILE.json]
 
 The output is a plain R,G,B EXR (default: ``INPUT_denoised.exr`` next to the input),
@@ -16,8 +16,10 @@ default model is used if the package has one (``ppmrecon/data/models/default.pt`
 before a model has been trained. ``--guard`` switches the consistent firefly guard
 (:mod:`ppmrecon.model.guard`) on or off; by default it is on (measured on renders it was
 not tuned on: benchmarks/results/guard.md). ``--guide`` likewise switches the denoiser guide
-(:mod:`ppmrecon.model.guide`: OIDN's image of ~z^4 steers the weights, never the output's
-consistency); on by default.
+(:mod:`ppmrecon.model.guide`: OIDN's image of ~z^4, never at the cost of the output's
+consistency); on by default. ``--guide-mode`` says how it enters: ``envelope`` (the shipped
+model's: OIDN's image held inside the range of each pixel's five estimates, no network)
+or ``weights`` (the prior of Eq. 6's weights, corrected by the network).
 """
 
 from __future__ import annotations

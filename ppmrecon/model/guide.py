@@ -32,6 +32,16 @@ Two robustness rules, because the guide is only as good as OIDN's view of one es
   pixel next to the true one; with the guide of ~z^4 alone the output took it (relMSE
   0.0145, 78% of it from five pixels), with ``cross = 2`` 0.0044.
 
+**Envelope mode** (``mode = "envelope"``, :func:`envelope`): the output is the guide itself,
+held per channel inside the range of the pixel's five estimates, low frequencies anchored
+to ~z^3 where they differ by more than its noise. No weights, no network; consistent
+because anything held between five estimates that converge to x_c converges to x_c.
+Measured on 120 validation images of ``data/v3_cpu`` and the 15 study renders
+(``bench_guide.py``, ``envelope k=1``): 0.495 / 0.448 against 0.520 / 0.470 for Eq. 6 with
+the guide's prior and the shipped network, 0 / 0 images worse than their best input
+(against 2 / 0), 8x8-block ratio 0.95 / 1.23 (against 1.04 / 1.16): the softmax over terms
+near g averages their noise, the clamp returns g wherever the estimates leave it room.
+
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
 and temper the prior per pixel (``temperature``, :func:`guided_logits`); trained on
