@@ -155,30 +155,34 @@ def guide_choice(choice: str, model_guide: GuideConfig) -> GuideConfig:
     return _choice(choice, model_guide, GuideConfig(), DEFAULT_GUIDE)
 
 
-def with_guide_mode(guide: GuideConfig, mode: str | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` in mode ``mode`` ("weights" or "envelope"; None: unchanged), named in the
-    one-line error as :func:`with_guide_quality` names its option. A learned temperature
-    belongs to the weights and is dropped in the envelope."""
-    if mode is None:
+def _with_guide_setting(guide: GuideConfig, key: str, value: str | None, allowed: Sequence[str], option: str,
+                        switch: str) -> GuideConfig:
+    """``guide`` with setting ``key`` = ``value`` (None: unchanged), checked against
+    ``allowed``; ``option`` and the guide's own ``switch`` name the settings in the
+    one-line error (the guide must be on)."""
+    if value is None:
         return guide
-    if mode not in GUIDE_MODES:
-        raise UsageError(f"{option} must be one of {', '.join(GUIDE_MODES)}, got {mode!r}")
+    if value not in allowed:
+        raise UsageError(f"{option}: must be one of {', '.join(allowed)}, got {value!r}")
     if not guide.enabled:
         raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
-    return replace(guide, mode=mode, temperature=guide.temperature and mode == "weights")
+    changes = {key: value}
+    if key == "mode":   # a learned temperature belongs to the weights
+        changes["temperature"] = guide.temperature and value == "weights"
+    return replace(guide, **changes)
+
+
+def with_guide_mode(guide: GuideConfig, mode: str | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` in mode ``mode`` ("weights" or "envelope"; None: unchanged), errors named
+    as :func:`with_guide_quality` names them; the envelope drops a learned temperature."""
+    return _with_guide_setting(guide, "mode", mode, GUIDE_MODES, option, switch)
 
 
 def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, switch: str) -> GuideConfig:
     """``guide`` with OIDN's quality mode ``quality`` (None: unchanged); ``option`` and the
     guide's own ``switch`` name the settings in the one-line error (the guide must be on,
     the mode one of :data:`.guide.OIDN_QUALITIES`)."""
-    if quality is None:
-        return guide
-    if quality not in OIDN_QUALITIES:
-        raise UsageError(f"{option}: must be one of {', '.join(OIDN_QUALITIES)}, got {quality!r}")
-    if not guide.enabled:
-        raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
-    return replace(guide, quality=quality)
+    return _with_guide_setting(guide, "quality", quality, OIDN_QUALITIES, option, switch)
 
 
 def _init_checkpoint(args) -> int:
