@@ -307,3 +307,14 @@ def test_cli_guide_mode(tmp_path):
     assert denoise_main(args + ["--guide", "off", "--guide-mode", "envelope"]) == 2
     with pytest.raises(ValueError, match="mode"):
         GuideConfig(enabled=True, mode="blend")
+
+
+def test_training_refuses_the_envelope_mode(tmp_path):
+    """The envelope runs no network: a training config asking for it is one clear error
+    (before any data is read)."""
+    from ppmrecon.errors import UsageError
+    from ppmrecon.train.loop import TrainConfig, train
+
+    with pytest.raises(UsageError, match="envelope"):
+        train(tmp_path / "no_data", tmp_path / "run", TrainConfig(guide={"enabled": True, "mode": "envelope"}),
+              quiet=True)

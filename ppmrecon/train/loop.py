@@ -195,6 +195,9 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
         guide = GuideConfig.from_dict(cfg.guide)
     except (TypeError, ValueError) as exc:
         raise UsageError(f"training config: {exc}") from None
+    if guide.enabled and guide.mode == "envelope":
+        raise UsageError("training config: guide mode 'envelope' runs no network, there is nothing to train; "
+                         "train with mode 'weights' and ship with scripts/ship_model.py --guide-mode envelope")
     torch.manual_seed(cfg.seed)
     shard = (dist.rank, dist.world) if dist is not None else None
     train_samples = load_split(data, "train", features, warn=warn, guard=guard,
