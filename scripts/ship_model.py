@@ -88,7 +88,10 @@ def main() -> None:
     lines = [
         "# Model card: `default.pt`", "",
         f"The model `ppmrecon-denoise` uses when `--model` is not given. Written by "
-        f"`scripts/ship_model.py {args.run}` from the run's files.", "",
+        f"`scripts/ship_model.py {args.run}"
+        + (f" --checkpoint {args.checkpoint}" if args.checkpoint != "best.pt" else "")
+        + (f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
+        + (f" --bench {args.bench}" if args.bench else "") + "` from the run's files.", "",
         "| | |", "|---|---|",
         f"| architecture | preset `{meta['preset']}`: {ckpt.model.preset.layers} conv layers, "
         f"{ckpt.model.preset.filters} filters {ckpt.model.preset.kernel}x{ckpt.model.preset.kernel}, "
