@@ -234,10 +234,11 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     ``guide`` (B, 4, H, W) the planes of :func:`guide_planes` (only R, G, B are used), y
     (B, 3, H, W) and z (B, 4, 3, H, W) the guarded inputs, ``anchor_variance`` (B, 1, H, W)
     the variance of the mean of ~z^m, m = ``cfg.anchor_source``; sigma = ``guard.anchor``
-    (0: no anchor), k = ``cfg.anchor_noise``. Consistent: the five estimates of pixel c converge to its truth
-    x_c, so does anything clamped between them (the guard's output band with h = 1), and
-    the anchor's correction vanishes. Measured (``benchmarks/bench_guide.py``, variant
-    ``envelope``) against Eq. 6 with the guide as prior: see the README.
+    (0: no anchor), k = ``cfg.anchor_noise``; the range widened by the guard's band h when
+    h > 1. Consistent: the five estimates of pixel c converge to its truth x_c, so does
+    anything clamped between them (the guard's output band), and the anchor's correction
+    vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
+    with the guide as prior: see the module docstring and the README.
     Why it can beat Eq. 6 with the same guide: the softmax over the 4 K^2 terms near g
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
     itself wherever the pixel's estimates leave room for it.
