@@ -359,12 +359,19 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
     """
     if band == 0:
         return image.clamp(min=0.0)
+    lo, hi = band_bounds(y, z, band)
+    return torch.minimum(torch.maximum(image, lo), hi)
+
+
+def band_bounds(y: torch.Tensor, z: torch.Tensor, band: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ends ``(min_k X_k / band, max_k X_k * band)`` of :func:`output_band` (band >= 1),
+    each (B, 3, H, W), for callers that clamp more than one image into them."""
     zmin, zmax = torch.aminmax(z, dim=1)                  # one pass over the four ~z^j
     lo = torch.minimum(y, zmin).clamp_(min=0.0)
     hi = torch.maximum(y, zmax)
     if band != 1:
         lo, hi = lo / band, hi * band
-    return torch.minimum(torch.maximum(image, lo), hi)
+    return lo, hi
 
 
 # ------------------------------------------------------------- low-frequency anchor

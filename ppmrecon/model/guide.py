@@ -243,14 +243,13 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
     itself wherever the pixel's estimates leave room for it.
     """
-    from .guard import anchor_where_biased, output_band
+    from .guard import anchor_where_biased, band_bounds
 
-    band = guard.band if guard.enabled and guard.band else 1.0
-    held = output_band(guide[:, :N_RGB], y, z, band)
+    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0)
+    held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
-        held = output_band(anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor,
-                                               cfg.anchor_noise),
-                           y, z, band)
+        held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise)
+        held = torch.minimum(torch.maximum(held, lo), hi)
     return held
 
 
