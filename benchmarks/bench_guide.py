@@ -13,8 +13,9 @@ validation image of a generated data set (never trained on) against its own refe
 Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
 ``kpn`` = a checkpoint as shipped (``--model``, repeatable); ``+guide`` = the same with the
 guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode;
-``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta B and the default cross rule (2); ``guide cross=C`` = the same at
-beta 0.03 with cross C (0 = off); ``guide K=K`` = the same with a K x K window (default
+``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
+B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
+(0 = off); ``guide K=K`` = the same with a K x K window (default
 5); ``guide source=zJ`` = the same with OIDN's image of ~z^J as the guide (default ~z^4);
 ``noanchor`` = without the guard's low-frequency anchor; ``envelope k=K`` = the guide
 itself held inside the range of each pixel's five estimates (``GuideConfig.mode =
@@ -52,10 +53,10 @@ WIDTH, PHOTONS, REF_PASSES, SEED = 128, 65536, 1024, 7
 BETAS = (0.01, 0.03, 0.1)
 CROSS = (0.0, 4.0)          # the default, 2, is every 'guide b=...' row
 SOURCES = (1, 2, 3)         # the estimate OIDN denoises for the guide (default ~z^4)
-WINDOWS = (3, 7, 9)
+WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the default, 5, is 'guide b=0.03')
 #: the envelope's anchor_noise k (1e-6: the plain anchor wherever there is any gap)
 ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
-ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)         # the combiner's window K for the guide alone (the default, 5, is 'guide b=0.03')
+ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -90,7 +91,7 @@ def variants(models: dict) -> dict:
                 out[f"{name} -guide"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=guard,
                                                                                    guide=GuideConfig()).rgb
             other = "weights" if net.guide.mode == "envelope" else "envelope"
-            g = replace(net.guide, mode=other, temperature=net.guide.temperature and other == "weights")
+            g = net.guide.in_mode(other)
             out[f"{name} {other}"] = lambda buf, net=net, guard=guard, g=g: denoise(buf, net, guard=guard, guide=g).rgb
             for quality in OIDN_QUALITIES:
                 if quality != net.guide.quality:

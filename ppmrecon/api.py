@@ -143,8 +143,10 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
-            guide_mode: str | None = None, tile: int | None = None, device: str = "cpu", precision: str = "auto") -> np.ndarray:
-    """The consistent reconstruction of a render (paper 002 Eq. 6 or the guide's envelope): (H, W, 3) float32.
+            guide_mode: str | None = None, tile: int | None = None, device: str = "cpu",
+            precision: str = "auto") -> np.ndarray:
+    """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
+    (H, W, 3) float32.
 
     ``buffers``: a :class:`BufferFile` (what :func:`render` returns) or the path of a
     buffer file. ``model``: None for the model shipped with ppmrecon, a checkpoint path,

@@ -14,7 +14,6 @@ import argparse
 import json
 import shutil
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,8 +57,7 @@ def main() -> None:
     if args.guide_mode and args.guide_mode != trained_guide.mode:
         if not trained_guide.enabled:
             sys.exit(f"ship_model: --guide-mode: {ckpt_path} was trained without the guide")
-        ckpt.model.guide = replace(trained_guide, mode=args.guide_mode,
-                                   temperature=trained_guide.temperature and args.guide_mode == "weights")
+        ckpt.model.guide = trained_guide.in_mode(args.guide_mode)
         save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "trained_guide": trained_guide.to_dict()})
     else:
         shutil.copyfile(ckpt_path, DEFAULT_MODEL)

@@ -166,10 +166,7 @@ def _with_guide_setting(guide: GuideConfig, key: str, value: str | None, allowed
         raise UsageError(f"{option}: must be one of {', '.join(allowed)}, got {value!r}")
     if not guide.enabled:
         raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
-    changes = {key: value}
-    if key == "mode":   # a learned temperature belongs to the weights
-        changes["temperature"] = guide.temperature and value == "weights"
-    return replace(guide, **changes)
+    return guide.in_mode(value) if key == "mode" else replace(guide, **{key: value})
 
 
 def with_guide_mode(guide: GuideConfig, mode: str | None, option: str, switch: str) -> GuideConfig:
@@ -282,15 +279,21 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     header = dict(buf.header)
     header.update({H_DENOISER: model.preset.name, H_MODEL: str(model_path), H_DENOISE_SECONDS: round(seconds, 4),
                    H_GUARD: "on" if guard.enabled else "off", H_ANCHOR: guard.anchor if guard.enabled else 0.0,
-                   H_GUIDE: (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} "
-                             + (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
-                                else f"beta={guide.beta:g}")
-                             + f" cross={guide.cross:g}" if guide.enabled else "off")})
+                   H_GUIDE: _guide_header(guide)})
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape
         how = "the guide's envelope" if guide.enabled and guide.mode == "envelope" else f"'{model.preset.name}'"
         print(f"{out}: {w}x{h} denoised with {how} in {seconds:.2f} s")
+
+
+def _guide_header(guide: GuideConfig) -> str:
+    """The guide's settings as the output's ``ppmrecon.guide`` header says them."""
+    if not guide.enabled:
+        return "off"
+    how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
+           else f"beta={guide.beta:g}")
+    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

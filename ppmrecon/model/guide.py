@@ -59,7 +59,7 @@ beta = 0.03 no image is worse than its best input, with or without the rule.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
@@ -140,6 +140,11 @@ class GuideConfig:
             raise ValueError(f"guide setting 'anchor_source' must be a ~z index 1..4, got {self.anchor_source!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
+
+    def in_mode(self, mode: str) -> "GuideConfig":
+        """The same settings in guide mode ``mode``; a learned temperature belongs to Eq. 6's
+        weights and is dropped in the envelope."""
+        return replace(self, mode=mode, temperature=self.temperature and mode == "weights")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
