@@ -197,6 +197,23 @@ def test_where_the_two_hit_points_disagree_the_guide_is_their_geometric_mean():
     torch.testing.assert_close(cross[:, :2, :2], plain[:, :2, :2])   # where they agree: OIDN of ~z^4
 
 
+def test_y_share_mixes_oidn_of_y_into_the_guide_after_the_cross_rule():
+    buf = make_buffer(16, 16, seed=9)
+    args = (buf.estimates, buf.albedo, buf.normal)
+    gy = torch.from_numpy(oidn_image(buf.estimates[0], buf.albedo, buf.normal, DEFAULT_GUIDE.quality)).permute(2, 0, 1)
+    for cross in (0.0, 2.0):
+        base = replace(DEFAULT_GUIDE, cross=cross)
+        g = guide_planes(*args, base, scale=1.0, floor=1e-3)[0]
+        mixed = guide_planes(*args, replace(base, y_share=0.25), scale=1.0, floor=1e-3)[0]
+        torch.testing.assert_close(mixed[:3], 0.75 * g[:3] + 0.25 * gy, rtol=1e-5, atol=1e-6)
+        # the tolerance follows the guide it is the tolerance of
+        torch.testing.assert_close(mixed[3], 0.03 * mixed[:3].mean(0) + 1e-3, rtol=1e-5, atol=1e-7)
+    assert GuideConfig.from_dict({k: v for k, v in DEFAULT_GUIDE.to_dict().items() if k != "y_share"}).y_share == 0
+    for bad in (-0.1, 1.0, True, float("nan")):
+        with pytest.raises(ValueError, match="y_share"):
+            GuideConfig(enabled=True, y_share=bad)
+
+
 def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
     from ppmrecon.model.guide import despike
 

@@ -112,6 +112,11 @@ class GuideConfig:
     #: bias next to bright caustics the anchor would otherwise bring back
     anchor_noise: float = 1.0
     anchor_source: int = 3
+    #: share w of OIDN's image of ~y in the guide, ``g = (1 - w) g_z + w g_y`` after the
+    #: cross rule: the two denoise estimates gathered at independent hit points (A, B), so
+    #: their noise averages out, and ~y has the smallest bandwidth bias; 0 = ~z^4's alone
+    #: (checkpoints without the setting read as 0)
+    y_share: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -138,6 +143,9 @@ class GuideConfig:
             raise ValueError(f"guide setting 'anchor_noise' must be a number > 0, got {self.anchor_noise!r}")
         if isinstance(self.anchor_source, bool) or self.anchor_source not in range(1, 5):
             raise ValueError(f"guide setting 'anchor_source' must be a ~z index 1..4, got {self.anchor_source!r}")
+        if isinstance(self.y_share, bool) or not isinstance(self.y_share, (int, float)) \
+                or not 0 <= self.y_share < 1:
+            raise ValueError(f"guide setting 'y_share' must be a number in [0, 1), got {self.y_share!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -212,18 +220,22 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     """The guide and its tolerance for a whole image, (1, 4, H, W): R, G, B of ``g`` and
     ``sigma = beta gbar + floor * scale``. ``estimates`` (5, H, W, 3) are the (guarded)
     inputs; ``scale`` the image's radiance scale. OIDN denoises the source estimate with
-    its B-only spikes removed (:func:`despike`). Whole images only: OIDN has no halo."""
+    its B-only spikes removed (:func:`despike`); with ``cross`` or ``y_share`` it also
+    denoises ~y, once. Whole images only: OIDN has no halo."""
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
     g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
-    if cfg.cross and cfg.source:
-        # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
-        # a rare path); neither guide is to be trusted, their geometric mean lies between
+    if cfg.source and (cfg.cross or cfg.y_share):
         gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
-        eps = floor * float(scale)
-        a, b = g.mean(0, keepdim=True) + eps, gy.mean(0, keepdim=True) + eps
-        apart = torch.maximum(a / b, b / a) > cfg.cross
-        g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
+        if cfg.cross:
+            # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
+            # a rare path); neither guide is to be trusted, their geometric mean lies between
+            eps = floor * float(scale)
+            a, b = g.mean(0, keepdim=True) + eps, gy.mean(0, keepdim=True) + eps
+            apart = torch.maximum(a / b, b / a) > cfg.cross
+            g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
+        if cfg.y_share:
+            g = torch.lerp(g, gy, cfg.y_share)
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
 
