@@ -22,7 +22,7 @@ itself held inside the range of each pixel's five estimates (``GuideConfig.mode 
 "envelope"``, no network), its anchor acting where the gap to ~z^3's low-pass exceeds K x
 that low-pass's variance (1e-6: the plain anchor; default K = 1), ``envelope anchor=zM``
 the same anchored to ~z^M, ``envelope noanchor`` without it; ``envelope y=W`` the envelope of the guide
-``(1 - W) g + W OIDN(~y)`` (``GuideConfig.y_share``);
+``(1 - W) g + W OIDN(~y)`` (``GuideConfig.y_share``), ``... noanchor`` without the anchor;
 ``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
 Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
 geometric mean, the worst, and how many images are worse than their best input.
@@ -122,6 +122,8 @@ def variants(models: dict) -> dict:
     for w in ENVELOPE_Y_SHARES:
         g = replace(DEFAULT_GUIDE, mode="envelope", y_share=w)
         out[f"envelope y={w:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
+        out[f"envelope y={w:g} noanchor"] = lambda buf, g=g: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0),
+                                                                     guide=g).rgb
     g = replace(DEFAULT_GUIDE, mode="envelope")
     out["envelope noanchor"] = lambda buf, g=g: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0), guide=g).rgb
     base = load_preset("tiny")

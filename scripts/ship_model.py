@@ -6,6 +6,12 @@ Copies the run's checkpoint to ``ppmrecon/data/models/default.pt`` and writes
 ``default.md`` (the model card) and ``default_validation.png`` from the run's
 ``history.json``, its checkpoint metadata and the data set's manifest: every figure in
 the card comes from those files.
+
+    .venv/bin/python scripts/ship_model.py --guide-y-share 0.25 --bench guide.json
+
+Without a run: re-ships the current ``default.pt`` with changed guide settings (same
+network weights); its card keeps what came from the training run and gets the new
+shipped-reconstruction row, the command, and the held-out figures of ``--bench``.
 """
 
 from __future__ import annotations
@@ -14,26 +20,34 @@ import argparse
 import json
 import shutil
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
-from ppmrecon.model.guide import GUIDE_MODES  # noqa: E402
+from ppmrecon.model.guide import GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run", type=Path, help="run folder of `ppmrecon-train fit`")
+    ap.add_argument("run", type=Path, nargs="?", default=None,
+                    help="run folder of `ppmrecon-train fit` (omit to re-ship the current default with "
+                         "changed guide settings)")
     ap.add_argument("--checkpoint", default="best.pt")
     ap.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
                     help="ship with the denoiser guide in this mode (default: as trained); the choice "
                          "should come from held-out figures: give them with --bench")
     ap.add_argument("--bench", type=Path, default=None,
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
+    ap.add_argument("--guide-y-share", type=float, default=None, metavar="W",
+                    help="ship with this share of OIDN's image of ~y in the guide (GuideConfig.y_share)")
     args = ap.parse_args()
+    if args.run is None:
+        reship(args)
+        return
     ckpt_path = args.run / args.checkpoint
     ckpt = load_checkpoint(ckpt_path)
     history = json.loads((args.run / "history.json").read_text())
@@ -54,10 +68,9 @@ def main() -> None:
 
     DEFAULT_MODEL.parent.mkdir(parents=True, exist_ok=True)
     trained_guide = ckpt.model.guide
-    if args.guide_mode and args.guide_mode != trained_guide.mode:
-        if not trained_guide.enabled:
-            sys.exit(f"ship_model: --guide-mode: {ckpt_path} was trained without the guide")
-        ckpt.model.guide = trained_guide.in_mode(args.guide_mode)
+    shipped_guide = changed_guide(trained_guide, args, ckpt_path)
+    if shipped_guide != trained_guide:
+        ckpt.model.guide = shipped_guide
         save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "trained_guide": trained_guide.to_dict()})
     else:
         shutil.copyfile(ckpt_path, DEFAULT_MODEL)
@@ -88,8 +101,7 @@ def main() -> None:
         f"The model `ppmrecon-denoise` uses when `--model` is not given. Written by "
         f"`scripts/ship_model.py {args.run}"
         + (f" --checkpoint {args.checkpoint}" if args.checkpoint != "best.pt" else "")
-        + (f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
-        + (f" --bench {args.bench}" if args.bench else "") + "` from the run's files.", "",
+        + command_flags(args) + "` from the run's files.", "",
         "| | |", "|---|---|",
         f"| architecture | preset `{meta['preset']}`: {ckpt.model.preset.layers} conv layers, "
         f"{ckpt.model.preset.filters} filters {ckpt.model.preset.kernel}x{ckpt.model.preset.kernel}, "
@@ -100,11 +112,7 @@ def main() -> None:
         (f"| denoiser guide | {trained_guide.to_dict()} in training (ppmrecon/model/guide.py: OIDN of "
          f"~z^{trained_guide.source} sets prior logits; the network's logits are a correction to them) |"
          if trained_guide.enabled else "| denoiser guide | off |"),
-        *([f"| shipped reconstruction | guide mode `envelope` ({ckpt.model.guide.to_dict()}): OIDN's image held "
-           "inside the range of each pixel's five estimates, anchored at low frequencies to "
-           f"~z^{ckpt.model.guide.anchor_source} where they differ by more than its noise; the network is not "
-           "run (`ppmrecon-denoise --guide-mode weights` runs it, as trained) |"]
-          if ckpt.model.guide.enabled and ckpt.model.guide.mode == "envelope" else []),
+        *shipped_row(ckpt.model.guide),
         f"| data set | `{data}`: {len(scenes)} complete generated scenes of {len(planned)} planned "
         f"({', '.join(families)}), {n_train} train / {n_val} validation (split by scene), "
         f"{cfg['resolution'][0]}x{cfg['resolution'][1]} px |",
@@ -143,22 +151,98 @@ def main() -> None:
                   "grown): from epoch " + ", from epoch ".join(f"{e}: {len(k) or 'unrecorded'} images" for e, k in sets)
                   + "; `best.pt` compares only epochs validated on the same images."]
     if args.bench:
-        bench = json.loads(args.bench.read_text())
-        lines += ["", f"Held-out figures from `{args.bench}` (`benchmarks/bench_guide.py`; relMSE and 8x8-block "
-                  "relMSE over each image's best single input, geometric means):", "",
-                  "| images | variant | relMSE / best | worst | worse than best | <= 0.5x | 8x8 / best | 8x8 <= best |",
-                  "|---|---|---:|---:|---:|---:|---:|---:|"]
-        for label, key in (("study scenes", "summary_scenes"), ("validation", "summary_validation")):
-            for row in bench.get(key, []):
-                if row["variant"].split(" ")[0] in bench.get("models", {}) or row["variant"] == "oidn(z4)":
-                    lines.append(f"| {label} ({row['images']}) | {row['variant']} | {row['geomean']:.3f} | "
-                                 f"{row['worst']:.2f} | {row['worse_than_best']} | {row['at_most_half']} | "
-                                 f"{row['geomean_8x8']:.3f} | {row['block_not_worse']} |")
+        lines += ["", *bench_lines(args.bench)]
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
               "benchmarks/results/guide/guide.md, quality.md, curves.md, guard.md, anchor.md."]
     DEFAULT_MODEL.with_name("default.md").write_text("\n".join(lines) + "\n")
     print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
+
+
+def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path) -> GuideConfig:
+    """``guide`` with the settings the command line changes (mode, y_share)."""
+    if (args.guide_mode or args.guide_y_share is not None) and not guide.enabled:
+        sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
+    if args.guide_mode and args.guide_mode != guide.mode:
+        guide = guide.in_mode(args.guide_mode)
+    if args.guide_y_share is not None:
+        try:
+            guide = replace(guide, y_share=args.guide_y_share)
+        except ValueError as exc:
+            sys.exit(f"ship_model: --guide-y-share: {exc}")
+    return guide
+
+
+def command_flags(args: argparse.Namespace) -> str:
+    """The guide and bench flags of this command, as the card quotes them."""
+    return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
+            + (f" --guide-y-share {args.guide_y_share:g}" if args.guide_y_share is not None else "")
+            + (f" --bench {args.bench}" if args.bench else ""))
+
+
+def shipped_row(guide: GuideConfig) -> list[str]:
+    """The card's "shipped reconstruction" row (envelope mode only)."""
+    if not (guide.enabled and guide.mode == "envelope"):
+        return []
+    mixed = (f"the mean of OIDN's images of ~z^{guide.source} and ~y weighted {1 - guide.y_share:g} : "
+             f"{guide.y_share:g}" if guide.y_share else f"OIDN's image of ~z^{guide.source}")
+    return [f"| shipped reconstruction | guide mode `envelope` ({guide.to_dict()}): {mixed}, held inside the range "
+            "of each pixel's five estimates, anchored at low frequencies to "
+            f"~z^{guide.anchor_source} where they differ by more than its noise; the network is not "
+            "run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
+
+
+def bench_lines(path: Path) -> list[str]:
+    """The card's held-out table from a ``bench_guide.py`` result: the shipped model's rows
+    (its name given with --model) and OIDN's image of ~z^4 beside them."""
+    bench = json.loads(path.read_text())
+    lines = [f"Held-out figures from `{path}` (`benchmarks/bench_guide.py`; relMSE and 8x8-block "
+             "relMSE over each image's best single input, geometric means):", "",
+             "| images | variant | relMSE / best | worst | worse than best | <= 0.5x | 8x8 / best | 8x8 <= best |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for label, key in (("study scenes", "summary_scenes"), ("validation", "summary_validation")):
+        for row in bench.get(key, []):
+            if row["variant"].split(" ")[0] in bench.get("models", {}) or row["variant"] == "oidn(z4)":
+                lines.append(f"| {label} ({row['images']}) | {row['variant']} | {row['geomean']:.3f} | "
+                             f"{row['worst']:.2f} | {row['worse_than_best']} | {row['at_most_half']} | "
+                             f"{row['geomean_8x8']:.3f} | {row['block_not_worse']} |")
+    return lines
+
+
+def reship(args: argparse.Namespace) -> None:
+    """The current default with the guide settings of the command line: same weights, its
+    card's training part kept, the shipped row, the command and the held-out table new."""
+    if args.guide_mode is None and args.guide_y_share is None:
+        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-share)")
+    ckpt = load_checkpoint(DEFAULT_MODEL)
+    before = ckpt.model.guide
+    ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
+    card_path = DEFAULT_MODEL.with_name("default.md")
+    card = card_path.read_text().splitlines()
+    history = list(ckpt.meta.get("reshipped", []))
+    if ckpt.model.guide != before:
+        history.append({"from": before.to_dict(), "to": ckpt.model.guide.to_dict()})
+    out, skipping = [], False
+    for line in card:
+        if line.startswith("The model `ppmrecon-denoise` uses"):
+            line = line.split(" Re-shipped by ", 1)[0] + (f" Re-shipped by `scripts/ship_model.py{command_flags(args)}` "
+                                                        "with changed guide settings (same weights).")
+        elif line.startswith("| shipped reconstruction |"):
+            continue
+        elif line.startswith("| data set |"):
+            out += shipped_row(ckpt.model.guide)
+        elif line.startswith("Held-out figures from") and args.bench:
+            out += bench_lines(args.bench)
+            skipping = True
+            continue
+        elif skipping and line.startswith("Limits:"):
+            out.append("")
+            skipping = False
+        if not skipping:
+            out.append(line)
+    save_checkpoint(DEFAULT_MODEL, ckpt.model, {**ckpt.meta, "reshipped": history})
+    card_path.write_text("\n".join(out) + "\n")
+    print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}")
 
 
 if __name__ == "__main__":

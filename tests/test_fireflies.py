@@ -137,13 +137,21 @@ def test_the_envelope_without_the_guard_keeps_a_firefly_every_input_has(shipped)
     assert all(out[r, c].mean() / clean[r, c].mean() > 100 for r, c in FIREFLIES)
 
 
-def test_guard_changes_nothing_without_fireflies_but_the_band(shipped):
+def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shipped):
     buf, clean = synthetic(seed=3)
     assert guard_buffer(buf, DEFAULT_ON) is buf
-    on = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32").rgb
+    no_anchor = denoise(buf, shipped, guard=replace(DEFAULT_ON, anchor=0), precision="float32").rgb
     off = denoise(buf, shipped, guard=GuardConfig(), precision="float32").rgb
-    assert relmse(on, clean) <= relmse(off, clean) * 1.01
+    assert relmse(no_anchor, clean) <= relmse(off, clean) * 1.01
+    on = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32").rgb
     assert np.all(on >= buf.estimates.min(0)) and np.all(on <= buf.estimates.max(0))
+    # The anchor brings ~z^3's low frequencies where they differ from the output's; here every
+    # ~z^j is an unbiased blurred copy, so there is no bias for it to remove and it trades
+    # the y-mixed guide's low-frequency noise for ~z^3's (relMSE 0.85 -> 0.95 of the best
+    # input at seed 3, measured with y_share 0.25; on real renders it lowers the 8x8-block
+    # error, benchmarks/results/guide_yshare): it may cost, but never past the best input.
+    best = min(relmse(x, clean) for x in buf.estimates)
+    assert relmse(on, clean) <= best
 
 
 def test_tiled_equals_untiled_with_the_guard_and_the_new_features():
