@@ -143,7 +143,8 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
-            guide_mode: str | None = None, tile: int | None = None, device: str = "cpu",
+            guide_mode: str | None = None, guide_y_share: float | None = None, tile: int | None = None,
+            device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
     (H, W, 3) float32.
@@ -156,7 +157,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     likewise; ``guide_quality``: OIDN's mode for the guide (``high``, ``balanced``,
     ``fast``; None: the model's); ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates) or ``weights`` (the prior of Eq. 6's
-    weights, corrected by the network; None: the model's), as ``--guide-mode``; ``tile``,
+    weights, corrected by the network; None: the model's), as ``--guide-mode``;
+    ``guide_y_share``: the share of OIDN's image of ~y in the guide (0 <= W < 1; None: the
+    model's), as ``--guide-y-share``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -167,7 +170,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality
+    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
+                            with_guide_y_share)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -180,6 +184,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
+    chosen = with_guide_y_share(chosen, guide_y_share, "denoise: guide_y_share", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from ppmrecon import buffers as B
+from ppmrecon.errors import UsageError
 from ppmrecon.model import checkpoint as C
 from ppmrecon.model.cli import main as denoise_main
 from ppmrecon.model.combine import combine, term_bounds
@@ -127,7 +128,7 @@ def test_cli_guide_switch_and_header(tmp_path):
                          "-o", str(tmp_path / "off.exr")]) == 0
     on, h_on = B.read_rgb(tmp_path / "on.exr")
     off, h_off = B.read_rgb(tmp_path / "off.exr")
-    assert h_on["ppmrecon.guide"] == "oidn(z4, fast) weights beta=0.03 cross=2" and h_off["ppmrecon.guide"] == "off"
+    assert h_on["ppmrecon.guide"] == "oidn(z4, fast) weights beta=0.03 cross=2 y=0" and h_off["ppmrecon.guide"] == "off"
     assert not np.allclose(on, off)
     planes = buffer_guide(buf, DEFAULT_GUIDE, DEFAULT_ON)
     assert planes.shape == (1, 4, 24, 24) and bool(torch.isfinite(planes).all())
@@ -153,7 +154,7 @@ def test_guide_quality_option(tmp_path, capsys):
         assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q",
                              "--guide-quality", q, "-o", str(out)]) == 0
         images[q], header = B.read_rgb(out)
-        assert header["ppmrecon.guide"] == f"oidn(z4, {q}) weights beta=0.03 cross=2"
+        assert header["ppmrecon.guide"] == f"oidn(z4, {q}) weights beta=0.03 cross=2 y=0"
     assert not np.array_equal(images["high"], images["fast"])
     np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_quality="high"), images["high"])
     assert denoise_main([str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide", "off",
@@ -316,7 +317,7 @@ def test_cli_guide_mode(tmp_path):
     args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q"]
     assert denoise_main(args + ["--guide-mode", "envelope", "-o", str(tmp_path / "env.exr")]) == 0
     env, header = B.read_rgb(tmp_path / "env.exr")
-    assert header["ppmrecon.guide"] == "oidn(z4, fast) envelope anchor=z3 k=1 cross=2"
+    assert header["ppmrecon.guide"] == "oidn(z4, fast) envelope anchor=z3 k=1 cross=2 y=0"
     np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope"), env)
     assert denoise_main(args + ["--guide-mode", "envelope", "--weights-layers", "-o", str(tmp_path / "x.exr")]) == 2
     assert not (tmp_path / "x.exr").exists()
@@ -324,6 +325,31 @@ def test_cli_guide_mode(tmp_path):
     assert denoise_main(args + ["--guide", "off", "--guide-mode", "envelope"]) == 2
     with pytest.raises(ValueError, match="mode"):
         GuideConfig(enabled=True, mode="blend")
+
+
+def test_cli_and_api_guide_y_share(tmp_path, capsys):
+    """--guide-y-share / guide_y_share= set the share of OIDN's image of ~y in the guide (the
+    header says it); out of [0, 1), or with the guide off: one clear line, exit 2."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=14)
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
+    assert denoise_main(args + ["--guide-y-share", "0.25", "-o", str(tmp_path / "y.exr")]) == 0
+    mixed, header = B.read_rgb(tmp_path / "y.exr")
+    assert header["ppmrecon.guide"].endswith("y=0.25")
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_y_share=0.25), mixed)
+    plain = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", guide_y_share=0.0)
+    assert not np.array_equal(plain, mixed)
+    for bad in ("1", "-0.5", "nan"):
+        assert denoise_main(args + ["--guide-y-share", bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert "--guide-y-share" in capsys.readouterr().err
+    assert denoise_main(args[:-2] + ["--guide", "off", "--guide-y-share", "0.25"]) == 2
+    assert not (tmp_path / "x.exr").exists()
+    with pytest.raises(UsageError, match="guide_y_share"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_share=1.5)
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

@@ -100,6 +100,10 @@ def build_parser() -> ArgumentParser:
                         "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
+    p.add_argument("--guide-y-share", type=float, default=None, metavar="W",
+                   help="share of OIDN's image of ~y (hit point A) in the guide, 0 <= W < 1: "
+                        "g = (1 - W) OIDN(~z^4) + W OIDN(~y) (default: the checkpoint's; the shipped "
+                        "model's 0.25)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -182,6 +186,18 @@ def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, swi
     return _with_guide_setting(guide, "quality", quality, OIDN_QUALITIES, option, switch)
 
 
+def with_guide_y_share(guide: GuideConfig, share: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``y_share`` = ``share`` (None: unchanged); errors named as
+    :func:`with_guide_quality` names them (the guide must be on, 0 <= share < 1)."""
+    if share is None:
+        return guide
+    if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share < 1:
+        raise UsageError(f"{option}: must be a number with 0 <= W < 1, got {share!r}")
+    if not guide.enabled:
+        raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
+    return replace(guide, y_share=float(share))
+
+
 def _init_checkpoint(args) -> int:
     features = FeatureConfig(radius=args.radius_features, passes=args.pass_feature,
                              scale_free=args.scale_free_features, outliers=args.outlier_features)
@@ -247,6 +263,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
+    guide = with_guide_y_share(guide, args.guide_y_share, "--guide-y-share", "--guide")
     if args.weights_layers and guide.enabled and guide.mode == "envelope":
         raise UsageError("--weights-layers: the guide's envelope has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -293,7 +310,7 @@ def _guide_header(guide: GuideConfig) -> str:
         return "off"
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
            else f"beta={guide.beta:g}")
-    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g}"
+    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_share:g}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
