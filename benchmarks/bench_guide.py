@@ -21,8 +21,9 @@ B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with
 itself held inside the range of each pixel's five estimates (``GuideConfig.mode =
 "envelope"``, no network), its anchor acting where the gap to ~z^3's low-pass exceeds K x
 that low-pass's variance (1e-6: the plain anchor; default K = 1), ``envelope anchor=zM``
-the same anchored to ~z^M, ``envelope noanchor`` without it; ``envelope y=W`` the envelope of the guide
-``(1 - W) g + W OIDN(~y)`` (``GuideConfig.y_share``), ``... noanchor`` without the anchor;
+the same anchored to ~z^M, ``envelope noanchor`` without it; ``envelope y=F`` the envelope of the guide
+mixed with OIDN(~y) by inverse local variances, ~y's times F (``GuideConfig.y_weight``; F = 0:
+``envelope k=1``), ``... noanchor`` without the anchor;
 ``oidn(z4)`` / ``oidn(y)`` = OIDN itself on ~z^4 / on ~y (not consistent; for scale).
 Per image: relMSE and 8x8-block relMSE over the best single input's; per variant the
 geometric mean, the worst, and how many images are worse than their best input.
@@ -58,7 +59,7 @@ WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the d
 #: the envelope's anchor_noise k (1e-6: the plain anchor wherever there is any gap)
 ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
 ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)
-ENVELOPE_Y_SHARES = (0.1, 0.25, 0.5)   # share of OIDN's image of ~y in the envelope's guide
+ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in the envelope's guide
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -119,8 +120,8 @@ def variants(models: dict) -> dict:
     for m in ENVELOPE_ANCHORS:
         g = replace(DEFAULT_GUIDE, mode="envelope", anchor_source=m)
         out[f"envelope anchor=z{m}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
-    for w in ENVELOPE_Y_SHARES:
-        g = replace(DEFAULT_GUIDE, mode="envelope", y_share=w)
+    for w in ENVELOPE_Y_WEIGHTS:
+        g = replace(DEFAULT_GUIDE, mode="envelope", y_weight=w)
         out[f"envelope y={w:g}"] = lambda buf, g=g: denoise(buf, alone, guide=g).rgb
         out[f"envelope y={w:g} noanchor"] = lambda buf, g=g: denoise(buf, alone, guard=replace(DEFAULT_ON, anchor=0),
                                                                      guide=g).rgb

@@ -143,7 +143,7 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
-            guide_mode: str | None = None, guide_y_share: float | None = None, tile: int | None = None,
+            guide_mode: str | None = None, guide_y_weight: float | None = None, tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -158,8 +158,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``fast``; None: the model's); ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates) or ``weights`` (the prior of Eq. 6's
     weights, corrected by the network; None: the model's), as ``--guide-mode``;
-    ``guide_y_share``: the share of OIDN's image of ~y in the guide (0 <= W < 1; None: the
-    model's), as ``--guide-y-share``; ``tile``,
+    ``guide_y_weight``: the weight of OIDN's image of ~y in the guide (>= 0; None: the
+    model's), as ``--guide-y-weight``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -171,7 +171,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     True
     """
     from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
-                            with_guide_y_share)
+                            with_guide_y_weight)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -184,7 +184,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
-    chosen = with_guide_y_share(chosen, guide_y_share, "denoise: guide_y_share", "guide=")
+    chosen = with_guide_y_weight(chosen, guide_y_weight, "denoise: guide_y_weight", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

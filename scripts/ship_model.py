@@ -7,7 +7,7 @@ Copies the run's checkpoint to ``ppmrecon/data/models/default.pt`` and writes
 ``history.json``, its checkpoint metadata and the data set's manifest: every figure in
 the card comes from those files.
 
-    .venv/bin/python scripts/ship_model.py --guide-y-share 0.25 --bench guide.json
+    .venv/bin/python scripts/ship_model.py --guide-y-weight 2 --bench guide.json
 
 Without a run: re-ships the current ``default.pt`` with changed guide settings (same
 network weights); its card keeps what came from the training run and gets the new
@@ -42,8 +42,8 @@ def main() -> None:
                          "should come from held-out figures: give them with --bench")
     ap.add_argument("--bench", type=Path, default=None,
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
-    ap.add_argument("--guide-y-share", type=float, default=None, metavar="W",
-                    help="ship with this share of OIDN's image of ~y in the guide (GuideConfig.y_share)")
+    ap.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
+                    help="ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)")
     args = ap.parse_args()
     if args.run is None:
         reship(args)
@@ -160,23 +160,23 @@ def main() -> None:
 
 
 def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path) -> GuideConfig:
-    """``guide`` with the settings the command line changes (mode, y_share)."""
-    if (args.guide_mode or args.guide_y_share is not None) and not guide.enabled:
+    """``guide`` with the settings the command line changes (mode, y_weight)."""
+    if (args.guide_mode or args.guide_y_weight is not None) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if args.guide_mode and args.guide_mode != guide.mode:
         guide = guide.in_mode(args.guide_mode)
-    if args.guide_y_share is not None:
+    if args.guide_y_weight is not None:
         try:
-            guide = replace(guide, y_share=args.guide_y_share)
+            guide = replace(guide, y_weight=args.guide_y_weight)
         except ValueError as exc:
-            sys.exit(f"ship_model: --guide-y-share: {exc}")
+            sys.exit(f"ship_model: --guide-y-weight: {exc}")
     return guide
 
 
 def command_flags(args: argparse.Namespace) -> str:
     """The guide and bench flags of this command, as the card quotes them."""
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
-            + (f" --guide-y-share {args.guide_y_share:g}" if args.guide_y_share is not None else "")
+            + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
 
@@ -184,8 +184,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
     """The card's "shipped reconstruction" row (envelope mode only)."""
     if not (guide.enabled and guide.mode == "envelope"):
         return []
-    mixed = (f"the mean of OIDN's images of ~z^{guide.source} and ~y weighted {1 - guide.y_share:g} : "
-             f"{guide.y_share:g}" if guide.y_share else f"OIDN's image of ~z^{guide.source}")
+    mixed = (f"OIDN's images of ~z^{guide.source} and ~y mixed by the inverse of their inputs' local variances, "
+             f"~y's times {guide.y_weight:g}" if guide.y_weight else f"OIDN's image of ~z^{guide.source}")
     return [f"| shipped reconstruction | guide mode `envelope` ({guide.to_dict()}): {mixed}, held inside the range "
             "of each pixel's five estimates, anchored at low frequencies to "
             f"~z^{guide.anchor_source} where they differ by more than its noise; the network is not "
@@ -212,8 +212,8 @@ def bench_lines(path: Path) -> list[str]:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.guide_y_share is None:
-        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-share)")
+    if args.guide_mode is None and args.guide_y_weight is None:
+        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-weight)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before = ckpt.model.guide
     ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)

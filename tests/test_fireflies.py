@@ -148,8 +148,9 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     # The anchor brings ~z^3's low frequencies where they differ from the output's; here every
     # ~z^j is an unbiased blurred copy, so there is no bias for it to remove and it trades
     # the y-mixed guide's low-frequency noise for ~z^3's (relMSE 0.85 -> 0.95 of the best
-    # input at seed 3, measured with y_share 0.25; on real renders it lowers the 8x8-block
-    # error, benchmarks/results/guide_yshare): it may cost, but never past the best input.
+    # input at seed 3, measured with OIDN(~y) at a fixed quarter of the guide; on real
+    # renders it lowers the 8x8-block error, benchmarks/results/guide_y): it may cost, but
+    # never past the best input.
     best = min(relmse(x, clean) for x in buf.estimates)
     assert relmse(on, clean) <= best
 

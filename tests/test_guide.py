@@ -15,7 +15,7 @@ from ppmrecon.model.cli import main as denoise_main
 from ppmrecon.model.combine import combine, term_bounds
 from ppmrecon.model.features import FeatureConfig
 from ppmrecon.model.guard import DEFAULT_ON
-from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig, guide_planes, oidn_image, prior_logits
+from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig, guide_planes, oidn_image, prior_logits, y_share
 from ppmrecon.model.infer import buffer_guide, denoise
 from ppmrecon.model.kpn import build
 from tests.conftest import make_buffer
@@ -198,21 +198,31 @@ def test_where_the_two_hit_points_disagree_the_guide_is_their_geometric_mean():
     torch.testing.assert_close(cross[:, :2, :2], plain[:, :2, :2])   # where they agree: OIDN of ~z^4
 
 
-def test_y_share_mixes_oidn_of_y_into_the_guide_after_the_cross_rule():
+def test_y_weight_mixes_oidn_of_y_into_the_guide_by_inverse_local_variance():
     buf = make_buffer(16, 16, seed=9)
+    var = np.ones_like(buf.variances)
+    var[4, :, :8] = 3.0                          # left half: ~z^4 3x as noisy as ~y
+    var[0, :, 8:] = 7.0                          # right half: ~y 7x as noisy as ~z^4
     args = (buf.estimates, buf.albedo, buf.normal)
     gy = torch.from_numpy(oidn_image(buf.estimates[0], buf.albedo, buf.normal, DEFAULT_GUIDE.quality)).permute(2, 0, 1)
     for cross in (0.0, 2.0):
         base = replace(DEFAULT_GUIDE, cross=cross)
         g = guide_planes(*args, base, scale=1.0, floor=1e-3)[0]
-        mixed = guide_planes(*args, replace(base, y_share=0.25), scale=1.0, floor=1e-3)[0]
-        torch.testing.assert_close(mixed[:3], 0.75 * g[:3] + 0.25 * gy, rtol=1e-5, atol=1e-6)
+        mixed = guide_planes(*args, replace(base, y_weight=2.0), scale=1.0, floor=1e-3, variances=var)[0]
+        w = y_share(var, 4, 2.0)
+        torch.testing.assert_close(mixed[:3], g[:3] + w * (gy - g[:3]), rtol=1e-5, atol=1e-6)
         # the tolerance follows the guide it is the tolerance of
         torch.testing.assert_close(mixed[3], 0.03 * mixed[:3].mean(0) + 1e-3, rtol=1e-5, atol=1e-7)
-    assert GuideConfig.from_dict({k: v for k, v in DEFAULT_GUIDE.to_dict().items() if k != "y_share"}).y_share == 0
-    for bad in (-0.1, 1.0, True, float("nan")):
-        with pytest.raises(ValueError, match="y_share"):
-            GuideConfig(enabled=True, y_share=bad)
+    # w = f V_z / (V_y + f V_z) far from the halves' seam (the variances are blurred)
+    torch.testing.assert_close(w[0, :, :2], torch.full((16, 2), 6.0 / 7.0))
+    torch.testing.assert_close(w[0, :, -2:], torch.full((16, 2), 2.0 / 9.0))
+    assert float(y_share(np.zeros_like(var), 4, 2.0).abs().max()) == 0.0     # nothing noisy: ~z^4's image
+    with pytest.raises(ValueError, match="variances"):
+        guide_planes(*args, replace(DEFAULT_GUIDE, y_weight=1.0), scale=1.0, floor=1e-3)
+    assert GuideConfig.from_dict({k: v for k, v in DEFAULT_GUIDE.to_dict().items() if k != "y_weight"}).y_weight == 0
+    for bad in (-0.1, True, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="y_weight"):
+            GuideConfig(enabled=True, y_weight=bad)
 
 
 def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
@@ -327,29 +337,29 @@ def test_cli_guide_mode(tmp_path):
         GuideConfig(enabled=True, mode="blend")
 
 
-def test_cli_and_api_guide_y_share(tmp_path, capsys):
-    """--guide-y-share / guide_y_share= set the share of OIDN's image of ~y in the guide (the
-    header says it); out of [0, 1), or with the guide off: one clear line, exit 2."""
+def test_cli_and_api_guide_y_weight(tmp_path, capsys):
+    """--guide-y-weight / guide_y_weight= set the weight of OIDN's image of ~y in the guide
+    (the header says it); negative or not a number, or with the guide off: one clear line, exit 2."""
     import ppmrecon
 
     buf = make_buffer(24, 24, seed=14)
     B.write_buffers(tmp_path / "in.exr", buf)
     C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
     args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
-    assert denoise_main(args + ["--guide-y-share", "0.25", "-o", str(tmp_path / "y.exr")]) == 0
+    assert denoise_main(args + ["--guide-y-weight", "2", "-o", str(tmp_path / "y.exr")]) == 0
     mixed, header = B.read_rgb(tmp_path / "y.exr")
-    assert header["ppmrecon.guide"].endswith("y=0.25")
+    assert header["ppmrecon.guide"].endswith("y=2")
     np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
-                                                   guide_y_share=0.25), mixed)
-    plain = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", guide_y_share=0.0)
+                                                   guide_y_weight=2.0), mixed)
+    plain = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", guide_y_weight=0.0)
     assert not np.array_equal(plain, mixed)
-    for bad in ("1", "-0.5", "nan"):
-        assert denoise_main(args + ["--guide-y-share", bad, "-o", str(tmp_path / "x.exr")]) == 2
-        assert "--guide-y-share" in capsys.readouterr().err
-    assert denoise_main(args[:-2] + ["--guide", "off", "--guide-y-share", "0.25"]) == 2
+    for bad in ("-0.5", "nan", "inf"):
+        assert denoise_main(args + ["--guide-y-weight", bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert "--guide-y-weight" in capsys.readouterr().err
+    assert denoise_main(args[:-2] + ["--guide", "off", "--guide-y-weight", "2"]) == 2
     assert not (tmp_path / "x.exr").exists()
-    with pytest.raises(UsageError, match="guide_y_share"):
-        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_share=1.5)
+    with pytest.raises(UsageError, match="guide_y_weight"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_weight=-1.0)
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

@@ -25,6 +25,7 @@ or ``weights`` (the prior of Eq. 6's weights, corrected by the network).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 from dataclasses import replace
@@ -100,10 +101,10 @@ def build_parser() -> ArgumentParser:
                         "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
-    p.add_argument("--guide-y-share", type=float, default=None, metavar="W",
-                   help="share of OIDN's image of ~y (hit point A) in the guide, 0 <= W < 1: "
-                        "g = (1 - W) OIDN(~z^4) + W OIDN(~y) (default: the checkpoint's; the shipped "
-                        "model's 0.25)")
+    p.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
+                   help="weight of OIDN's image of ~y (hit point A) in the guide, F >= 0: mixed with "
+                        "OIDN's image of ~z^4 by the inverse of their inputs' local variances, ~y's "
+                        "times F; 0 = ~z^4's alone (default: the checkpoint's; the shipped model's 2)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -186,16 +187,16 @@ def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, swi
     return _with_guide_setting(guide, "quality", quality, OIDN_QUALITIES, option, switch)
 
 
-def with_guide_y_share(guide: GuideConfig, share: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``y_share`` = ``share`` (None: unchanged); errors named as
-    :func:`with_guide_quality` names them (the guide must be on, 0 <= share < 1)."""
-    if share is None:
+def with_guide_y_weight(guide: GuideConfig, weight: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``y_weight`` = ``weight`` (None: unchanged); errors named as
+    :func:`with_guide_quality` names them (the guide must be on, weight a finite number >= 0)."""
+    if weight is None:
         return guide
-    if isinstance(share, bool) or not isinstance(share, (int, float)) or not 0 <= share < 1:
-        raise UsageError(f"{option}: must be a number with 0 <= W < 1, got {share!r}")
+    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
+        raise UsageError(f"{option}: must be a number >= 0, got {weight!r}")
     if not guide.enabled:
         raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
-    return replace(guide, y_share=float(share))
+    return replace(guide, y_weight=float(weight))
 
 
 def _init_checkpoint(args) -> int:
@@ -263,7 +264,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
-    guide = with_guide_y_share(guide, args.guide_y_share, "--guide-y-share", "--guide")
+    guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
     if args.weights_layers and guide.enabled and guide.mode == "envelope":
         raise UsageError("--weights-layers: the guide's envelope has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -310,7 +311,7 @@ def _guide_header(guide: GuideConfig) -> str:
         return "off"
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
            else f"beta={guide.beta:g}")
-    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_share:g}"
+    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_weight:g}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -80,6 +80,8 @@ OIDN_QUALITIES = ("high", "balanced", "fast")
 GUIDE_MODES = ("weights", "envelope")
 #: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
 SPIKE_RATIO = 4.0
+#: Width (pixels) of the Gaussian that averages the variances in :func:`y_share`.
+Y_WEIGHT_SIGMA = 2.0
 #: :func:`despike` computes the 3 x 3 medians of the whole image when more than this
 #: fraction of its pixels are candidates (above ~y's level), else at the candidates only.
 DENSE_SPIKES = 0.05
@@ -112,11 +114,12 @@ class GuideConfig:
     #: bias next to bright caustics the anchor would otherwise bring back
     anchor_noise: float = 1.0
     anchor_source: int = 3
-    #: share w of OIDN's image of ~y in the guide, ``g = (1 - w) g_z + w g_y`` after the
-    #: cross rule: the two denoise estimates gathered at independent hit points (A, B), so
-    #: their noise averages out, and ~y has the smallest bandwidth bias; 0 = ~z^4's alone
+    #: weight f of OIDN's image of ~y in the guide, against OIDN's image of the source, each
+    #: weighted by the inverse of its input's local variance of the mean (:func:`y_share`):
+    #: ~y is gathered at its own hit point A, so the two images' noise is independent and
+    #: averages out, and ~y has the smallest bandwidth bias; 0 = the source's image alone
     #: (checkpoints without the setting read as 0)
-    y_share: float = 0.0
+    y_weight: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -143,9 +146,9 @@ class GuideConfig:
             raise ValueError(f"guide setting 'anchor_noise' must be a number > 0, got {self.anchor_noise!r}")
         if isinstance(self.anchor_source, bool) or self.anchor_source not in range(1, 5):
             raise ValueError(f"guide setting 'anchor_source' must be a ~z index 1..4, got {self.anchor_source!r}")
-        if isinstance(self.y_share, bool) or not isinstance(self.y_share, (int, float)) \
-                or not 0 <= self.y_share < 1:
-            raise ValueError(f"guide setting 'y_share' must be a number in [0, 1), got {self.y_share!r}")
+        if isinstance(self.y_weight, bool) or not isinstance(self.y_weight, (int, float)) \
+                or not math.isfinite(self.y_weight) or self.y_weight < 0:
+            raise ValueError(f"guide setting 'y_weight' must be a number >= 0, got {self.y_weight!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -215,17 +218,41 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
     return out
 
 
+def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
+    """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
+
+        w = f Vbar_s / (Vbar_y + f Vbar_s),   Vbar = G_sigma * V
+
+    with V the buffer's variance of the mean of ~y and of the source estimate s
+    (``variances`` (5, H, W)), G_sigma a Gaussian of :data:`Y_WEIGHT_SIGMA` px and f =
+    ``weight``: each OIDN image weighted by the inverse of its input's local noise, ~y's
+    by f more (f = 2 measured best on the validation images, ``bench_guide.py``). Where
+    neither input is noisy, 0. Many passes make ~y's noise the larger, so w falls with N.
+    """
+    from .guard import gaussian_lowpass
+
+    v = gaussian_lowpass(torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))[None],
+                         Y_WEIGHT_SIGMA)[0]
+    vy, vs = v[0:1], weight * v[1:2]
+    total = vy + vs
+    return torch.where(total > 0, vs / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(total))
+
+
 def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
-                 scale: float, floor: float) -> torch.Tensor:
+                 scale: float, floor: float, variances: np.ndarray | None = None) -> torch.Tensor:
     """The guide and its tolerance for a whole image, (1, 4, H, W): R, G, B of ``g`` and
     ``sigma = beta gbar + floor * scale``. ``estimates`` (5, H, W, 3) are the (guarded)
     inputs; ``scale`` the image's radiance scale. OIDN denoises the source estimate with
-    its B-only spikes removed (:func:`despike`); with ``cross`` or ``y_share`` it also
-    denoises ~y, once. Whole images only: OIDN has no halo."""
+    its B-only spikes removed (:func:`despike`); with ``cross`` or ``y_weight`` it also
+    denoises ~y, once. ``variances`` (5, H, W), the inputs' variances of the mean, are
+    needed with ``y_weight`` (:func:`y_share`). Whole images only: OIDN has no halo."""
+    mix_y = bool(cfg.y_weight and cfg.source)
+    if mix_y and variances is None:
+        raise ValueError("guide_planes: the guide's y_weight needs the inputs' variances")
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
     g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
-    if cfg.source and (cfg.cross or cfg.y_share):
+    if cfg.source and (cfg.cross or mix_y):
         gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
@@ -234,8 +261,8 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             a, b = g.mean(0, keepdim=True) + eps, gy.mean(0, keepdim=True) + eps
             apart = torch.maximum(a / b, b / a) > cfg.cross
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
-        if cfg.y_share:
-            g = torch.lerp(g, gy, cfg.y_share)
+        if mix_y:
+            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight))
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
 

@@ -171,7 +171,7 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
         est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
         scale = float(image_scale(est))
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
-    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, scale, floor)
+    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, scale, floor, buf.variances)
 
 
 def _envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
