@@ -42,6 +42,15 @@ the guide's prior and the shipped network, 0 / 0 images worse than their best in
 (against 2 / 0), 8x8-block ratio 0.95 / 1.23 (against 1.04 / 1.16): the softmax over terms
 near g averages their noise, the clamp returns g wherever the estimates leave it room.
 
+**OIDN's image of ~y in the guide** (``y_weight`` F, :func:`y_share`): after the cross rule
+the guide is ``g + w (OIDN(~y) - g)``, ``w = F Vz / (Vy + F Vz)`` from the inputs' locally
+blurred variances of the mean. ~y comes from its own hit point A, so the two images' noise
+is independent, and its bandwidth bias is the smallest; the shipped default has F = 2
+(``bench_guide.py``, ``benchmarks/results/guide_y``: study / validation / N = 1024 renders
+0.448 / 0.635 / 0.724 -> 0.438 / 0.584 / 0.701, no image worse than its best input). A fixed
+share of a quarter did as well up to N = 256 but put two N = 1024 renders above their best
+input, where ~y's noise is ten times ~z^4's.
+
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
 and temper the prior per pixel (``temperature``, :func:`guided_logits`); trained on
