@@ -47,7 +47,7 @@ the guide is ``g + w (OIDN(~y) - g)``, ``w = F Vz / (Vy + F Vz)`` from the input
 blurred variances of the mean. ~y comes from its own hit point A, so the two images' noise
 is independent, and its bandwidth bias is the smallest; the shipped default has F = 2
 (``bench_guide.py``, ``benchmarks/results/guide_y``: study / validation / N = 1024 renders
-0.448 / 0.635 / 0.724 -> 0.438 / 0.584 / 0.701, no image worse than its best input). A fixed
+0.448 / 0.571 / 0.724 -> 0.438 / 0.538 / 0.701, no image worse than its best input). A fixed
 share of a quarter did as well up to N = 256 but put two N = 1024 renders above their best
 input, where ~y's noise is ten times ~z^4's.
 
