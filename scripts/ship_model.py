@@ -26,6 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
 from ppmrecon.model.guide import GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
@@ -155,7 +156,7 @@ def main() -> None:
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
               "benchmarks/results/guide/guide.md, quality.md, curves.md, guard.md, anchor.md."]
-    DEFAULT_MODEL.with_name("default.md").write_text("\n".join(lines) + "\n")
+    write_text(DEFAULT_MODEL.with_name("default.md"), "\n".join(lines) + "\n")
     print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
 
 
@@ -241,7 +242,7 @@ def reship(args: argparse.Namespace) -> None:
         if not skipping:
             out.append(line)
     save_checkpoint(DEFAULT_MODEL, ckpt.model, {**ckpt.meta, "reshipped": history})
-    card_path.write_text("\n".join(out) + "\n")
+    write_text(card_path, "\n".join(out) + "\n")
     print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}")
 
 
