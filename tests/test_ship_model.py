@@ -1,0 +1,90 @@
+"""scripts/ship_model.py without a run folder: re-shipping the default with changed guide
+settings keeps the weights and the card's training part, and records the change."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from ppmrecon.model import checkpoint as C
+from ppmrecon.model.features import FeatureConfig
+from ppmrecon.model.guard import DEFAULT_ON
+from ppmrecon.model.guide import DEFAULT_GUIDE
+from ppmrecon.model.kpn import build
+
+ROOT = Path(__file__).resolve().parents[1]
+CARD = """# Model card: `default.pt`
+
+The model `ppmrecon-denoise` uses when `--model` is not given. Written by `scripts/ship_model.py runs/x` from the run's files.
+
+| | |
+|---|---|
+| denoiser guide | trained with it |
+| shipped reconstruction | the old row |
+| data set | `data/x`: 2 scenes |
+
+| epoch | train loss (Eq. 8) | validation relMSE | best single input |
+| 1 | 0.1 | 0.2 | 0.3 |
+
+Held-out figures from `old.json`:
+
+| old table |
+
+Limits: trained on SPPM inputs only.
+"""
+
+
+@pytest.fixture
+def ship_model(tmp_path, monkeypatch):
+    spec = importlib.util.spec_from_file_location("ship_model", ROOT / "scripts" / "ship_model.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    monkeypatch.setattr(module, "DEFAULT_MODEL", tmp_path / "default.pt")
+    model = build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON, replace(DEFAULT_GUIDE, mode="envelope"))
+    C.save_checkpoint(tmp_path / "default.pt", model, {"trained": True})
+    (tmp_path / "default.md").write_text(CARD)
+    return module
+
+
+def _run(module, monkeypatch, *argv: str) -> None:
+    monkeypatch.setattr(sys, "argv", ["ship_model.py", *argv])
+    module.main()
+
+
+def test_reship_changes_the_guide_keeps_the_weights_and_rewrites_the_card(ship_model, tmp_path, monkeypatch):
+    before = C.load_checkpoint(tmp_path / "default.pt")
+    bench = tmp_path / "guide.json"
+    row = {"variant": "shipped", "images": 3, "geomean": 0.4, "worst": 0.9, "worse_than_best": 0,
+           "at_most_half": 1, "geomean_8x8": 0.95, "block_not_worse": 2}
+    bench.write_text(json.dumps({"models": {"shipped": "x"}, "summary_scenes": [row], "summary_validation": []}))
+    _run(ship_model, monkeypatch, "--guide-y-weight", "2", "--bench", str(bench))
+    after = C.load_checkpoint(tmp_path / "default.pt")
+    assert after.model.guide == replace(before.model.guide, y_weight=2.0)
+    for k, v in before.model.state_dict().items():
+        assert torch.equal(v, after.model.state_dict()[k])
+    assert after.meta["reshipped"] == [{"from": before.model.guide.to_dict(), "to": after.model.guide.to_dict()}]
+    card = (tmp_path / "default.md").read_text()
+    assert "Re-shipped by `scripts/ship_model.py --guide-y-weight 2 --bench" in card
+    assert "the old row" not in card and card.count("| shipped reconstruction |") == 1
+    assert "~y's times 2" in card
+    assert "| 1 | 0.1 | 0.2 | 0.3 |" in card and "| denoiser guide | trained with it |" in card   # training part kept
+    assert "old table" not in card and "| study scenes (3) | shipped | 0.400 |" in card
+    assert card.rstrip().endswith("Limits: trained on SPPM inputs only.")
+    # the same settings again: nothing to record, one "Re-shipped" sentence
+    _run(ship_model, monkeypatch, "--guide-y-weight", "2")
+    again = C.load_checkpoint(tmp_path / "default.pt")
+    assert len(again.meta["reshipped"]) == 1
+    assert (tmp_path / "default.md").read_text().count("Re-shipped by") == 1
+
+
+def test_reship_needs_a_setting_and_a_valid_one(ship_model, monkeypatch):
+    with pytest.raises(SystemExit, match="guide setting to change"):
+        _run(ship_model, monkeypatch)
+    with pytest.raises(SystemExit, match="--guide-y-weight"):
+        _run(ship_model, monkeypatch, "--guide-y-weight", "-1")
