@@ -25,7 +25,6 @@ or ``weights`` (the prior of Eq. 6's weights, corrected by the network).
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import replace
@@ -189,14 +188,16 @@ def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, swi
 
 def with_guide_y_weight(guide: GuideConfig, weight: float | None, option: str, switch: str) -> GuideConfig:
     """``guide`` with ``y_weight`` = ``weight`` (None: unchanged); errors named as
-    :func:`with_guide_quality` names them (the guide must be on, weight a finite number >= 0)."""
+    :func:`with_guide_quality` names them (the guide must be on; the value is checked by
+    :class:`.guide.GuideConfig`)."""
     if weight is None:
         return guide
-    if isinstance(weight, bool) or not isinstance(weight, (int, float)) or not math.isfinite(weight) or weight < 0:
-        raise UsageError(f"{option}: must be a number >= 0, got {weight!r}")
     if not guide.enabled:
         raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
-    return replace(guide, y_weight=float(weight))
+    try:
+        return replace(guide, y_weight=weight)
+    except ValueError as exc:
+        raise UsageError(f"{option}: {exc}") from None
 
 
 def _init_checkpoint(args) -> int:

@@ -235,16 +235,16 @@ def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
     with V the buffer's variance of the mean of ~y and of the source estimate s
     (``variances`` (5, H, W)), G_sigma a Gaussian of :data:`Y_WEIGHT_SIGMA` px and f =
     ``weight``: each OIDN image weighted by the inverse of its input's local noise, ~y's
-    by f more (f = 2 measured best on the validation images, ``bench_guide.py``). Where
-    neither input is noisy, 0. Many passes make ~y's noise the larger, so w falls with N.
+    by f more (the shipped f = 2 lies between the validation images' best, 4, and the
+    study scenes', 1; ``bench_guide.py``). Where neither input is noisy, 0. Many passes
+    make ~y's noise the larger, so w falls with N.
     """
     from .guard import gaussian_lowpass
 
     v = gaussian_lowpass(torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))[None],
                          Y_WEIGHT_SIGMA)[0]
-    vy, vs = v[0:1], weight * v[1:2]
-    total = vy + vs
-    return torch.where(total > 0, vs / torch.where(total > 0, total, torch.ones_like(total)), torch.zeros_like(total))
+    vs = weight * v[1:2]
+    return vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
 
 
 def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
