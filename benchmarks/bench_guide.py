@@ -8,11 +8,14 @@ Renders: the three literature scenes and the two built-in caustic scenes at widt
 65536 photons per pass, five-chain SPPM at each N (seed 7; cached in ``<out>/cache``),
 scored against the equal-time study's references (single-bandwidth SPPM, 1024 passes,
 two seeds, cached in ``--ref-cache``, rendered there when missing). ``--data``: also every
-validation image of a generated data set (never trained on) against its own reference.
+validation image of a generated data set (never trained on) against its own reference;
+``--split train`` / ``all`` scores its training images too, which are held out for whatever
+has no trained weights (the envelope, OIDN, the guide alone), not for a trained network.
 
 Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
 ``kpn`` = a checkpoint as shipped (``--model``, repeatable); ``+guide`` = the same with the
-guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode;
+guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode; ``NAME cross=C`` = an
+envelope checkpoint with the guide's cross rule at C (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -96,6 +99,12 @@ def variants(models: dict) -> dict:
             other = "weights" if net.guide.mode == "envelope" else "envelope"
             g = net.guide.in_mode(other)
             out[f"{name} {other}"] = lambda buf, net=net, guard=guard, g=g: denoise(buf, net, guard=guard, guide=g).rgb
+            if net.guide.mode == "envelope" and net.guide.source:
+                for cross in (0.0, 2.0, 4.0):
+                    if cross != net.guide.cross:
+                        g = replace(net.guide, cross=cross)
+                        out[f"{name} cross={cross:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
+                            buf, net, guard=guard, guide=g).rgb
             for quality in OIDN_QUALITIES:
                 if quality != net.guide.quality:
                     g = replace(net.guide, quality=quality)
@@ -260,6 +269,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=Path, required=True, help="folder of the literature scenes (../shared/scenes)")
     ap.add_argument("--data", type=Path, help="a generated data set: score its validation images too")
+    ap.add_argument("--split", choices=("val", "train", "all"), default="val",
+                    help="which images of --data (default val; 'train' and 'all' are held out only for "
+                         "what has no trained weights: the envelope, OIDN, the guide alone)")
     ap.add_argument("--model", action="append", default=[], metavar="NAME=CKPT",
                     help="a checkpoint to score (repeat; default: the shipped default as 'default')")
     ap.add_argument("--passes", default="16,64,256", help="pass counts of the scene renders")
@@ -296,7 +308,7 @@ def main() -> None:
         from ppmrecon.train.datagen import REFERENCE, load_manifest
 
         for scene in load_manifest(args.data)["scenes"]:
-            if scene.get("split") != "val" or not scene.get("reference"):
+            if args.split != "all" and scene.get("split") != args.split or not scene.get("reference"):
                 continue
             ref, _ = B.read_rgb(args.data / scene["id"] / REFERENCE)
             halves = [args.data / scene["id"] / h["file"] for h in scene.get("references", [])]
@@ -310,11 +322,13 @@ def main() -> None:
                                  "passes": item["passes"], **row})
         print(f"validation: {len(val_rows)} images", flush=True)
     report = {"models": {k: str(v) for k, v in models.items()}, "scenes": scene_rows, "validation": val_rows,
+              "split": args.split,
               "summary_scenes": summary(scene_rows, names),
               "summary_validation": summary(val_rows, names) if val_rows else [],
               "minutes": (time.perf_counter() - t0) / 60}
     write_json(args.out / "guide.json", report)
     cmd = "benchmarks/bench_guide.py --scenes ../shared/scenes" + (f" --data {args.data}" if args.data else "") \
+        + (f" --split {args.split}" if args.split != "val" else "") \
         + "".join(f" --model {k}={v}" for k, v in models.items()) \
         + (f" --variants '{args.variants}'" if args.variants else "") \
         + (f" --passes {args.passes}" if args.passes != "16,64,256" else "") \
@@ -331,10 +345,11 @@ def main() -> None:
              f"images where e < {NET_SHARE_LIMIT:g} x the best input's.", "",
              "## Literature scenes (never trained on) and built-in caustic scenes", "", *table(report["summary_scenes"])]
     if val_rows:
-        lines += ["", f"## Validation images of `{args.data}` (every N)", "", *table(report["summary_validation"])]
+        which = {"val": "Validation images", "train": "Training-split images", "all": "All images"}[args.split]
+        lines += ["", f"## {which} of `{args.data}` (every N)", "", *table(report["summary_validation"])]
         # the trained models and the guide alone, per family and N (every variant would not fit a page)
         chosen = [n for n in names if n in models or n in ("oidn(z4)", "guide b=0.03", "envelope k=1")]
-        lines += ["", "### Per family and N (validation)", "",
+        lines += ["", f"### Per family and N ({which.lower()})", "",
                   "Geometric means of relMSE / 8x8-block relMSE over the best input. Reference error: the "
                   "reference's own relMSE estimated from its two independent halves (|a - b|^2 / 4), as a share "
                   "of the best input's; near 1 a ratio cannot fall much below 1.", "",

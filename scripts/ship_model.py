@@ -45,6 +45,8 @@ def main() -> None:
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
     ap.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
                     help="ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)")
+    ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
+                    help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
     args = ap.parse_args()
     if args.run is None:
         reship(args)
@@ -162,7 +164,7 @@ def main() -> None:
 
 def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path) -> GuideConfig:
     """``guide`` with the settings the command line changes (mode, y_weight)."""
-    if (args.guide_mode or args.guide_y_weight is not None) and not guide.enabled:
+    if (args.guide_mode or args.guide_y_weight is not None or args.guide_cross is not None) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if args.guide_mode and args.guide_mode != guide.mode:
         guide = guide.in_mode(args.guide_mode)
@@ -171,6 +173,11 @@ def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path) ->
             guide = replace(guide, y_weight=args.guide_y_weight)
         except ValueError as exc:
             sys.exit(f"ship_model: --guide-y-weight: {exc}")
+    if args.guide_cross is not None:
+        try:
+            guide = replace(guide, cross=args.guide_cross)
+        except ValueError as exc:
+            sys.exit(f"ship_model: --guide-cross: {exc}")
     return guide
 
 
@@ -178,6 +185,7 @@ def command_flags(args: argparse.Namespace) -> str:
     """The guide and bench flags of this command, as the card quotes them."""
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
             + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
+            + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
 
@@ -198,10 +206,13 @@ def bench_lines(path: Path) -> list[str]:
     (its name given with --model) and OIDN's image of ~z^4 beside them."""
     bench = json.loads(path.read_text())
     lines = [f"Held-out figures from `{path}` (`benchmarks/bench_guide.py`; relMSE and 8x8-block "
-             "relMSE over each image's best single input, geometric means):", "",
+             "relMSE over each image's best single input, geometric means"
+             + ("; every image of the data set is held out for what runs no trained weights: the envelope, "
+                "OIDN" if bench.get("split", "val") != "val" else "") + "):", "",
              "| images | variant | relMSE / best | worst | worse than best | <= 0.5x | 8x8 / best | 8x8 <= best |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for label, key in (("study scenes", "summary_scenes"), ("validation", "summary_validation")):
+    data_label = {"val": "validation", "train": "training split", "all": "data set, all splits"}[bench.get("split", "val")]
+    for label, key in (("study scenes", "summary_scenes"), (data_label, "summary_validation")):
         for row in bench.get(key, []):
             if row["variant"].split(" ")[0] in bench.get("models", {}) or row["variant"] == "oidn(z4)":
                 lines.append(f"| {label} ({row['images']}) | {row['variant']} | {row['geomean']:.3f} | "
@@ -213,8 +224,9 @@ def bench_lines(path: Path) -> list[str]:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.guide_y_weight is None:
-        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-weight)")
+    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None:
+        sys.exit("ship_model: give a run folder, or a guide setting to change "
+                 "(--guide-mode, --guide-y-weight, --guide-cross)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before = ckpt.model.guide
     ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)

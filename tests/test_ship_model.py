@@ -88,3 +88,21 @@ def test_reship_needs_a_setting_and_a_valid_one(ship_model, monkeypatch):
         _run(ship_model, monkeypatch)
     with pytest.raises(SystemExit, match="--guide-y-weight"):
         _run(ship_model, monkeypatch, "--guide-y-weight", "-1")
+
+
+def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, tmp_path, monkeypatch):
+    before = C.load_checkpoint(tmp_path / "default.pt")
+    bench = tmp_path / "guide.json"
+    row = {"variant": "shipped", "images": 5, "geomean": 0.5, "worst": 1.2, "worse_than_best": 1,
+           "at_most_half": 2, "geomean_8x8": 0.9, "block_not_worse": 3}
+    bench.write_text(json.dumps({"models": {"shipped": "x"}, "summary_scenes": [], "summary_validation": [row],
+                                 "split": "all"}))
+    assert before.model.guide.cross == 2.0
+    _run(ship_model, monkeypatch, "--guide-cross", "0", "--bench", str(bench))
+    after = C.load_checkpoint(tmp_path / "default.pt")
+    assert after.model.guide == replace(before.model.guide, cross=0.0)
+    card = (tmp_path / "default.md").read_text()
+    assert "Re-shipped by `scripts/ship_model.py --guide-cross 0 --bench" in card
+    assert "| data set, all splits (5) | shipped | 0.500 | 1.20 | 1 |" in card
+    with pytest.raises(SystemExit, match="--guide-cross"):
+        _run(ship_model, monkeypatch, "--guide-cross", "1")
