@@ -30,7 +30,11 @@ Two robustness rules, because the guide is only as good as OIDN's view of one es
   guides differ by more than ``cross`` x, the guide is their geometric mean. On
   ``water_caustic`` (N = 128, study seed 21) a sub-pixel sparkle sat in every ~z^j of the
   pixel next to the true one; with the guide of ~z^4 alone the output took it (relMSE
-  0.0145, 78% of it from five pixels), with ``cross = 2`` 0.0044.
+  0.0145, 78% of it from five pixels), with ``cross = 2`` 0.0044. The shipped envelope
+  runs with the rule off: with the ~y weight below it no longer pays, and in a dark scene
+  whose ~y saw no photon in most pixels it put the geometric mean with OIDN's near-zero
+  image of ~y into the guide (all 216 images of ``data/v3_cpu``, ``bench_guide.py --split
+  all``: 0.557 -> 0.539 of the best input, 18 -> 14 images worse than it, worst 3.38 -> 1.83).
 
 **Envelope mode** (``mode = "envelope"``, :func:`envelope`): the output is the guide itself,
 held per channel inside the range of the pixel's five estimates, low frequencies anchored
