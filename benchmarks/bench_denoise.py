@@ -17,7 +17,9 @@ The input is a synthetic buffer (seeded: shapes and gradients, gamma noise on ~y
 blurred weaker noise on ~z^j) unless --input gives a rendered one. Weights are
 untrained (timing and memory do not depend on their values), except ``shipped``: the
 default checkpoint with its firefly guard and denoiser guide (OIDN inside), as
-``ppmrecon-denoise`` runs it (in the guide's envelope mode that is no network at all).
+``ppmrecon-denoise`` runs it (in the guide's envelope mode that is no network at all; in
+its chooser mode the envelope and the chooser), and ``shipped:MODE``, the same in another
+guide mode (``shipped:envelope``: the envelope alone).
 Writes `denoise.md`, `denoise.json` and `denoise.png` into --out.
 """
 
@@ -107,10 +109,12 @@ def worker(spec: dict) -> dict:
         from ppmrecon.model.kpn import build, parameter_count
 
         torch.manual_seed(0)
-        if spec["method"] == "shipped":      # the default model as ppmrecon-denoise runs it (guard + guide)
+        if spec["method"].split(":")[0] == "shipped":   # the default model as ppmrecon-denoise runs it
             from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint
 
             model = load_checkpoint(DEFAULT_MODEL).model
+            if ":" in spec["method"]:                   # shipped:MODE, another guide mode of it
+                model.guide = model.guide.in_mode(spec["method"].split(":", 1)[1])
         else:
             model = build(spec["method"]).eval()
         precision = resolve_precision(spec["precision"], torch.device("cpu"))
@@ -120,6 +124,9 @@ def worker(spec: dict) -> dict:
             assert np.isfinite(out.rgb).all()
         if model.guide.enabled and model.guide.mode == "envelope":   # the guide's envelope runs no network
             extra = {"precision": "guide envelope (no network)"}
+        elif model.guide.enabled and model.guide.mode == "chooser":
+            extra = {"precision": f"guide envelope + chooser (float32, {model.chooser.cfg.width} channels)",
+                     "parameters": parameter_count(model.chooser)}
         else:
             extra = {"precision": precision, "parameters": parameter_count(model), "window": model.window}
     times = []

@@ -14,7 +14,8 @@ has no trained weights (the envelope, OIDN, the guide alone), not for a trained 
 
 Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
 ``kpn`` = a checkpoint as shipped (``--model``, repeatable); ``+guide`` = the same with the
-guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode; ``NAME cross=C`` = an
+guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode (a chooser
+checkpoint: ``NAME envelope``, the envelope without its chooser); ``NAME cross=C`` = an
 envelope checkpoint with the guide's cross rule at C (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
@@ -80,7 +81,7 @@ def variants(models: dict) -> dict:
     from ppmrecon.model.checkpoint import load_checkpoint
     from ppmrecon.model.features import FeatureConfig
     from ppmrecon.model.guard import DEFAULT_ON
-    from ppmrecon.model.guide import DEFAULT_GUIDE, OIDN_QUALITIES, GuideConfig
+    from ppmrecon.model.guide import DEFAULT_GUIDE, ENVELOPE_MODES, OIDN_QUALITIES, GuideConfig
     from ppmrecon.model.infer import denoise
     from ppmrecon.model.kpn import Preset, build, load_preset
 
@@ -99,7 +100,7 @@ def variants(models: dict) -> dict:
             other = "weights" if net.guide.mode == "envelope" else "envelope"
             g = net.guide.in_mode(other)
             out[f"{name} {other}"] = lambda buf, net=net, guard=guard, g=g: denoise(buf, net, guard=guard, guide=g).rgb
-            if net.guide.mode == "envelope" and net.guide.source:
+            if net.guide.mode in ENVELOPE_MODES and net.guide.source:
                 for cross in (0.0, 2.0, 4.0):
                     if cross != net.guide.cross:
                         g = replace(net.guide, cross=cross)

@@ -156,8 +156,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4),
     likewise; ``guide_quality``: OIDN's mode for the guide (``high``, ``balanced``,
     ``fast``; None: the model's); ``guide_mode``: ``envelope`` (OIDN's image held inside
-    the range of each pixel's five estimates) or ``weights`` (the prior of Eq. 6's
-    weights, corrected by the network; None: the model's), as ``--guide-mode``;
+    the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
+    envelope and other images held in that range; a checkpoint with a chooser, as the
+    shipped one) or ``weights`` (the prior of Eq. 6's weights, corrected by the network;
+    None: the model's), as ``--guide-mode``;
     ``guide_y_weight``: the weight of OIDN's image of ~y in the guide (>= 0; None: the
     model's), as ``--guide-y-weight``; ``tile``,
     ``device``, ``precision`` as its options.

@@ -8,10 +8,13 @@ Copies the run's checkpoint to ``ppmrecon/data/models/default.pt`` and writes
 the card comes from those files.
 
     .venv/bin/python scripts/ship_model.py --guide-y-weight 2 --bench guide.json
+    .venv/bin/python scripts/ship_model.py --chooser runs/chooser/chooser.pt --bench guide.json
 
 Without a run: re-ships the current ``default.pt`` with changed guide settings (same
 network weights); its card keeps what came from the training run and gets the new
 shipped-reconstruction row, the command, and the held-out figures of ``--bench``.
+``--chooser`` attaches the chooser of a ``ppmrecon-train chooser`` run (trained on this
+default's guard and guide) and sets the guide to mode "chooser"; the card gets its row.
 """
 
 from __future__ import annotations
@@ -28,7 +31,8 @@ sys.path.insert(0, str(ROOT))
 
 from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
-from ppmrecon.model.guide import GUIDE_MODES, GuideConfig  # noqa: E402
+from ppmrecon.model.chooser import CANDIDATES  # noqa: E402
+from ppmrecon.model.guide import ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
@@ -45,6 +49,9 @@ def main() -> None:
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
     ap.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
                     help="ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)")
+    ap.add_argument("--chooser", type=Path, default=None, metavar="CKPT",
+                    help="attach the chooser of this `ppmrecon-train chooser` result (its chooser.pt) and "
+                         "ship in guide mode 'chooser'")
     ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
                     help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
     args = ap.parse_args()
@@ -186,19 +193,42 @@ def command_flags(args: argparse.Namespace) -> str:
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
             + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
             + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
+            + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
 
+def chooser_row(model, meta: dict) -> list[str]:
+    """The card's "chooser" row: its architecture, data, training and validation figures."""
+    if model.chooser is None or not (model.guide.enabled and model.guide.mode == "chooser"):
+        return []
+    info = meta.get("chooser", {})
+    cfg, val = info.get("config", {}), info.get("validation") or {}
+    params = sum(p.numel() for p in model.chooser.parameters())
+    row = (f"| chooser | {model.chooser.cfg.to_dict()}, {params} parameters (ppmrecon/model/chooser.py: softmax "
+           f"weights per pixel over {', '.join(CANDIDATES)}, each held in the five estimates' range); trained by "
+           f"`ppmrecon-train chooser` on `{info.get('data', '?')}` ({info.get('train_images', '?')} training images, "
+           f"{cfg.get('steps', '?')} steps of {cfg.get('batch', '?')} x {cfg.get('crop', '?')} px crops, "
+           f"{info.get('seconds', 0) / 60:.1f} min)")
+    if val:
+        c, e = val["chooser"], val["envelope"]
+        row += (f"; validation split ({val['images']} images, never trained on): {c['ratio']:.3f} of the best "
+                f"input (envelope {e['ratio']:.3f}), 8x8 {c['ratio_8x8']:.3f} ({e['ratio_8x8']:.3f}), worse than "
+                f"the best input {c['worse']} ({e['worse']})")
+    return [row + " |"]
+
+
 def shipped_row(guide: GuideConfig) -> list[str]:
-    """The card's "shipped reconstruction" row (envelope mode only)."""
-    if not (guide.enabled and guide.mode == "envelope"):
+    """The card's "shipped reconstruction" row (envelope and chooser modes)."""
+    if not (guide.enabled and guide.mode in ENVELOPE_MODES):
         return []
     mixed = (f"OIDN's images of ~z^{guide.source} and ~y mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}" if guide.y_weight else f"OIDN's image of ~z^{guide.source}")
-    return [f"| shipped reconstruction | guide mode `envelope` ({guide.to_dict()}): {mixed}, held inside the range "
-            "of each pixel's five estimates, anchored at low frequencies to "
-            f"~z^{guide.anchor_source} where they differ by more than its noise; the network is not "
-            "run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
+    chooser = ("; then the chooser (row below) mixes that envelope per pixel with other images held in the "
+               "same range (`--guide-mode envelope`: the envelope alone)" if guide.mode == "chooser" else "")
+    return [f"| shipped reconstruction | guide mode `{guide.mode}` ({guide.to_dict()}): {mixed}, held inside the "
+            "range of each pixel's five estimates, anchored at low frequencies to "
+            f"~z^{guide.anchor_source} where they differ by more than its noise{chooser}; the Eq. 6 network is "
+            "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 
 
 def bench_lines(path: Path) -> list[str]:
@@ -224,15 +254,30 @@ def bench_lines(path: Path) -> list[str]:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None:
+    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None and args.chooser is None:
         sys.exit("ship_model: give a run folder, or a guide setting to change "
-                 "(--guide-mode, --guide-y-weight, --guide-cross)")
+                 "(--guide-mode, --guide-y-weight, --guide-cross, --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before = ckpt.model.guide
-    ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
+    meta = dict(ckpt.meta)
+    if args.chooser is not None:
+        trained = load_checkpoint(args.chooser)
+        if trained.model.chooser is None:
+            sys.exit(f"ship_model: --chooser: {args.chooser} has no chooser")
+        if trained.model.guard != ckpt.model.guard or trained.model.guide.in_mode("envelope") != before.in_mode("envelope"):
+            sys.exit(f"ship_model: --chooser: {args.chooser} was trained on another guard or guide than "
+                     f"{DEFAULT_MODEL}'s; train it again with this default as --base-model")
+        ckpt.model.chooser = trained.model.chooser
+        meta["chooser"] = trained.meta.get("chooser", {})
+        before_mode = args.guide_mode
+        args.guide_mode = args.guide_mode or "chooser"
+        ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
+        args.guide_mode = before_mode
+    else:
+        ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
     card_path = DEFAULT_MODEL.with_name("default.md")
     card = card_path.read_text().splitlines()
-    history = list(ckpt.meta.get("reshipped", []))
+    history = list(meta.get("reshipped", []))
     if ckpt.model.guide != before:
         history.append({"from": before.to_dict(), "to": ckpt.model.guide.to_dict()})
     out, skipping = [], False
@@ -240,10 +285,10 @@ def reship(args: argparse.Namespace) -> None:
         if line.startswith("The model `ppmrecon-denoise` uses"):
             line = line.split(" Re-shipped by ", 1)[0] + (f" Re-shipped by `scripts/ship_model.py{command_flags(args)}` "
                                                         "with changed guide settings (same weights).")
-        elif line.startswith("| shipped reconstruction |"):
+        elif line.startswith("| shipped reconstruction |") or line.startswith("| chooser |"):
             continue
         elif line.startswith("| data set |"):
-            out += shipped_row(ckpt.model.guide)
+            out += shipped_row(ckpt.model.guide) + chooser_row(ckpt.model, meta)
         elif line.startswith("Held-out figures from") and args.bench:
             out += bench_lines(args.bench)
             skipping = True
@@ -253,7 +298,7 @@ def reship(args: argparse.Namespace) -> None:
             skipping = False
         if not skipping:
             out.append(line)
-    save_checkpoint(DEFAULT_MODEL, ckpt.model, {**ckpt.meta, "reshipped": history})
+    save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "reshipped": history})
     write_text(card_path, "\n".join(out) + "\n")
     print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}")
 

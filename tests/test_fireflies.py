@@ -410,8 +410,9 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
         C.load_checkpoint(path)
     # the shipped model is issue 12's recipe: trained with the guard and the new features
     assert shipped.guard == DEFAULT_ON and shipped.features == FeatureConfig(scale_free=True, outliers=True)
-    # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py)
-    assert shipped.guide.enabled and shipped.guide.mode == "envelope"
+    # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py,
+    # bench_refine.py): the envelope with a trained chooser on top
+    assert shipped.guide.enabled and shipped.guide.mode == "chooser" and shipped.chooser is not None
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):

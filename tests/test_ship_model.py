@@ -106,3 +106,30 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     assert "| data set, all splits (5) | shipped | 0.500 | 1.20 | 1 |" in card
     with pytest.raises(SystemExit, match="--guide-cross"):
         _run(ship_model, monkeypatch, "--guide-cross", "1")
+
+
+def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path, monkeypatch):
+    from ppmrecon.model.chooser import Chooser, ChooserConfig
+
+    base = C.load_checkpoint(tmp_path / "default.pt")
+    trained = base.model
+    trained.chooser = Chooser(ChooserConfig(width=4, layers=2))
+    trained.guide = replace(trained.guide, mode="chooser")
+    val = {"images": 4, "chooser": {"ratio": 0.5, "worst": 0.9, "worse": 0, "ratio_8x8": 0.9, "blocks_ok": 3},
+           "envelope": {"ratio": 0.55, "worst": 0.95, "worse": 1, "ratio_8x8": 0.95, "blocks_ok": 2}}
+    C.save_checkpoint(tmp_path / "chooser.pt", trained,
+                      {"chooser": {"data": "data/x", "config": {"steps": 8, "batch": 2, "crop": 16},
+                                   "train_images": 12, "seconds": 60.0, "validation": val}})
+    _run(ship_model, monkeypatch, "--chooser", str(tmp_path / "chooser.pt"))
+    after = C.load_checkpoint(tmp_path / "default.pt")
+    assert after.model.guide == replace(base.model.guide, mode="chooser") and after.model.chooser is not None
+    assert after.meta["chooser"]["train_images"] == 12
+    card = (tmp_path / "default.md").read_text()
+    assert card.count("| chooser |") == 1 and "0.500 of the best input (envelope 0.550)" in card
+    assert "guide mode `chooser`" in card and f"--chooser {tmp_path / 'chooser.pt'}" in card
+    # a chooser trained on another guide is refused
+    other = C.load_checkpoint(tmp_path / "chooser.pt").model
+    other.guide = replace(other.guide, y_weight=7.0)
+    C.save_checkpoint(tmp_path / "other.pt", other)
+    with pytest.raises(SystemExit, match="another guard or guide"):
+        _run(ship_model, monkeypatch, "--chooser", str(tmp_path / "other.pt"))

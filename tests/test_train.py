@@ -443,3 +443,80 @@ def test_guide_aware_fit_reads_the_guide_and_tempers_its_prior(tiny_data, tmp_pa
     assert np.isfinite(denoise(buf, model).rgb).all()
     with pytest.raises(UsageError, match="guide off"):
         denoise(buf, model, guide=GuideConfig())
+
+
+def _chooser_config(tmp_path: Path, **overrides) -> Path:
+    cfg = {"steps": 8, "batch": 2, "crop": 16, "lr": 0.01, "width": 4, "layers": 2, "save_every": 4, **overrides}
+    path = tmp_path / "chooser.json"
+    path.write_text(json.dumps(cfg))
+    return path
+
+
+@pytest.fixture(scope="module")
+def envelope_model(tmp_path_factory) -> Path:
+    from ppmrecon.model.features import FeatureConfig
+    from ppmrecon.model.guard import DEFAULT_ON
+    from ppmrecon.model.guide import DEFAULT_GUIDE
+    from ppmrecon.model.kpn import build
+
+    path = tmp_path_factory.mktemp("base") / "envelope.pt"
+    C.save_checkpoint(path, build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON,
+                                  replace(DEFAULT_GUIDE, mode="envelope", cross=0.0, y_weight=2.0)))
+    return path
+
+
+def test_chooser_trains_scores_its_validation_split_and_denoises(tiny_data, envelope_model, tmp_path, capsys):
+    root, _ = tiny_data
+    run = tmp_path / "run"
+    args = ["chooser", str(root), "--out", str(run), "--config", str(_chooser_config(tmp_path)),
+            "--base-model", str(envelope_model), "--quiet"]
+    assert train_cli.main(args) == 0
+    out = capsys.readouterr().out
+    assert "chooser.pt after 8 steps on 6 images; validation (6 images)" in out
+    history = json.loads((run / "history.json").read_text())
+    assert [h["step"] for h in history["losses"]] == [4, 8] and history["finished"]
+    v = history["validation"]
+    assert v["images"] == 6 and 0 < v["chooser"]["ratio"] < 10 and 0 < v["envelope"]["ratio"] < 10
+    ckpt = C.load_checkpoint(run / "chooser.pt")
+    assert ckpt.model.guide.mode == "chooser" and ckpt.model.chooser.cfg.width == 4
+    assert ckpt.meta["chooser"]["train_images"] == 6 and ckpt.meta["chooser"]["train_scenes"] == 1
+    # a second run into the same folder must say --resume
+    with pytest.raises(UsageError, match="--resume"):
+        train_cli.main(args)
+    exr = sorted(root.glob("*/input_*.exr"))[0]
+    assert denoise_cli.main([str(exr), "--model", str(run / "chooser.pt"), "-o", str(tmp_path / "o.exr"),
+                             "--quiet"]) == 0
+    assert np.isfinite(B.read_rgb(tmp_path / "o.exr")[0]).all()
+
+
+def test_chooser_resumed_is_the_run_that_never_stopped(tiny_data, envelope_model, tmp_path):
+    from ppmrecon.train.chooser import ChooserTrainConfig, fit, prepare
+
+    root, _ = tiny_data
+    items = [it for it in prepare(root, C.load_checkpoint(envelope_model).model) if it.split == "train"]
+    cfg = ChooserTrainConfig.load(_chooser_config(tmp_path))
+    straight, _ = fit(items, cfg)
+    state = tmp_path / "state.pt"
+    first, hist = fit(items, cfg, state, max_seconds=0.0)            # stops at the first saved state
+    assert [h["step"] for h in hist] == [4]
+    resumed, hist = fit(items, cfg, state, resume=True)
+    assert [h["step"] for h in hist] == [4, 8]
+    for k, v in straight.state_dict().items():
+        torch.testing.assert_close(resumed.state_dict()[k], v, rtol=0, atol=0)
+    with pytest.raises(UsageError, match="other settings"):
+        fit(items, replace(cfg, lr=0.02), state, resume=True)
+
+
+def test_chooser_config_errors_are_one_line(tiny_data, tmp_path):
+    from ppmrecon.train.chooser import ChooserTrainConfig
+
+    with pytest.raises(UsageError, match="'crop' must be a multiple of 8"):
+        ChooserTrainConfig.load(_chooser_config(tmp_path, crop=12))
+    with pytest.raises(UsageError, match="'lr' must be a number > 0"):
+        ChooserTrainConfig.load(_chooser_config(tmp_path, lr=0))
+    with pytest.raises(UsageError, match="unknown key"):
+        ChooserTrainConfig.load(_chooser_config(tmp_path, depth=2))
+    root, _ = tiny_data
+    with pytest.raises(UsageError, match="smaller than the crop"):
+        train_cli.main(["chooser", str(root), "--out", str(tmp_path / "r"), "--config",
+                        str(_chooser_config(tmp_path, crop=32)), "--quiet"])

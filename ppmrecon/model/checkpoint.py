@@ -12,6 +12,8 @@ A checkpoint is a ``torch.save`` dict of plain types and tensors only, so it loa
                     format 2, read as the guard off (those models never saw it)
     guide           the denoiser-guide settings (GuideConfig.to_dict()); absent before
                     format 3, read as the guide off
+    chooser         the chooser's architecture (ChooserConfig.to_dict()), when the model has one
+                    (format 4; its weights are the state_dict's ``chooser.*``)
     state_dict      the weights
     meta            free-form training information (epochs, validation relMSE, ...)
 
@@ -32,6 +34,7 @@ from ..buffers import SCHEMA_VERSION
 from ..data import MODELS
 from ..errors import UsageError
 from ..fileio import atomic_write
+from .chooser import Chooser, ChooserConfig
 from .features import FeatureConfig
 from .guard import GuardConfig
 from .guide import GuideConfig
@@ -40,7 +43,8 @@ from .kpn import DEFAULT_PRESET, KPN, Preset, build
 FORMAT = "ppmrecon-kpn"
 #: 2: adds "guard" (an older ppmrecon must not run a guard-trained model without it)
 #: 3: adds "guide" (likewise: a guide-trained network's logits are a correction to the prior)
-FORMAT_VERSION = 3
+#: 4: adds "chooser" (the learned choice on top of the envelope, guide mode "chooser")
+FORMAT_VERSION = 4
 #: A shipped default model is picked up from here when it exists.
 DEFAULT_MODEL = MODELS / "default.pt"
 _ZIP_MAGIC = b"PK\x03\x04"   # torch.save's archive format
@@ -65,6 +69,7 @@ def save_checkpoint(path: str | os.PathLike, model: KPN, meta: Mapping[str, Any]
         "features": model.features.to_dict(),
         "guard": model.guard.to_dict(),
         "guide": model.guide.to_dict(),
+        **({"chooser": model.chooser.cfg.to_dict()} if model.chooser is not None else {}),
         "state_dict": {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()},
         "meta": dict(meta or {}),
     }
@@ -127,19 +132,26 @@ def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = 
     for key, kind in (("preset", dict), ("features", dict), ("state_dict", dict)):
         if not isinstance(data.get(key), kind):
             raise fail(f"checkpoint lacks '{key}'")
-    guard_data, guide_data = data.get("guard", {}), data.get("guide", {})
+    guard_data, guide_data, chooser_data = data.get("guard", {}), data.get("guide", {}), data.get("chooser")
     if not isinstance(guard_data, dict):
         raise fail("checkpoint has an unreadable 'guard'")
     if not isinstance(guide_data, dict):
         raise fail("checkpoint has an unreadable 'guide'")
+    if chooser_data is not None and not isinstance(chooser_data, dict):
+        raise fail("checkpoint has an unreadable 'chooser'")
     try:
         preset = Preset.from_dict(data["preset"])
         features = FeatureConfig.from_dict(data["features"])
         guard = GuardConfig.from_dict(guard_data)
         guide = GuideConfig.from_dict(guide_data)
+        chooser = ChooserConfig.from_dict(chooser_data) if chooser_data is not None else None
     except (TypeError, ValueError) as exc:
         raise fail(f"invalid architecture in checkpoint ({exc})") from None
+    if guide.enabled and guide.mode == "chooser" and chooser is None:
+        raise fail("guide mode 'chooser' but the checkpoint has no chooser")
     model = KPN(preset, features, guard, guide)
+    if chooser is not None:
+        model.chooser = Chooser(chooser)
     try:
         model.load_state_dict(data["state_dict"], strict=True)
     except RuntimeError as exc:

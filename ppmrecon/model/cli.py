@@ -39,7 +39,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
+from .guide import DEFAULT_GUIDE, ENVELOPE_MODES, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -96,7 +96,9 @@ def build_parser() -> ArgumentParser:
                         "(default there: off)")
     p.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
                    help="how the guide enters: 'envelope' = OIDN's image held inside the range of each "
-                        "pixel's five estimates (no network), 'weights' = the prior of Eq. 6's weights, "
+                        "pixel's five estimates (no network), 'chooser' = a learned per-pixel mix of the "
+                        "envelope and other images held in that range (a checkpoint trained with "
+                        "`ppmrecon-train chooser`), 'weights' = the prior of Eq. 6's weights, "
                         "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
@@ -266,8 +268,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
     guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
-    if args.weights_layers and guide.enabled and guide.mode == "envelope":
-        raise UsageError("--weights-layers: the guide's envelope has no combination weights "
+    if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
+        raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
     for src, out in zip(inputs, outputs):
         _denoise_one(args, src, out, model, model_path, device, guard, guide)
@@ -302,7 +304,8 @@ def _denoise_one(args: argparse.Namespace, src: Path, out: Path, model, model_pa
     write_rgb(out, result.rgb, extra=extra, header=header)
     if not args.quiet:
         h, w = buf.shape
-        how = "the guide's envelope" if guide.enabled and guide.mode == "envelope" else f"'{model.preset.name}'"
+        how = (f"the guide's {guide.mode}" if guide.enabled and guide.mode in ENVELOPE_MODES
+               else f"'{model.preset.name}'")
         print(f"{out}: {w}x{h} denoised with {how} in {seconds:.2f} s")
 
 
@@ -310,7 +313,7 @@ def _guide_header(guide: GuideConfig) -> str:
     """The guide's settings as the output's ``ppmrecon.guide`` header says them."""
     if not guide.enabled:
         return "off"
-    how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode == "envelope"
+    how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode in ENVELOPE_MODES
            else f"beta={guide.beta:g}")
     return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_weight:g}"
 

@@ -73,7 +73,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, NamedTuple
 
 import numpy as np
 import torch
@@ -90,7 +90,9 @@ GUIDE_SOURCE = 4
 #: OIDN's quality modes (pyoidn's names).
 OIDN_QUALITIES = ("high", "balanced", "fast")
 #: How the guide enters the reconstruction (:attr:`GuideConfig.mode`).
-GUIDE_MODES = ("weights", "envelope")
+GUIDE_MODES = ("weights", "envelope", "chooser")
+#: Modes whose output is built on the envelope (no Eq. 6).
+ENVELOPE_MODES = ("envelope", "chooser")
 #: :func:`despike`'s ratio: a spike is this many times above both neighbourhood levels.
 SPIKE_RATIO = 4.0
 #: Width (pixels) of the Gaussian that averages the variances in :func:`y_share`.
@@ -119,7 +121,9 @@ class GuideConfig:
     temperature: bool = False
     #: how the guide enters: "weights" = the prior of Eq. 6's weights (the network adds its
     #: correction); "envelope" = the output is the guide held inside the range of the
-    #: pixel's five estimates (:func:`envelope`; the network is not run)
+    #: pixel's five estimates (:func:`envelope`; the network is not run); "chooser" = a learned
+    #: per-pixel convex combination of the envelope and other band-held candidates
+    #: (:mod:`.chooser`; needs a checkpoint with chooser weights)
     mode: str = "weights"
     #: envelope mode: the low-frequency anchor to ~z^(anchor_source) acts where the gap
     #: exceeds ``anchor_noise`` times the variance of that estimate's low-pass
@@ -152,8 +156,8 @@ class GuideConfig:
                              f"got {self.quality!r}")
         if self.mode not in GUIDE_MODES:
             raise ValueError(f"guide setting 'mode' must be one of {', '.join(GUIDE_MODES)}, got {self.mode!r}")
-        if self.mode == "envelope" and self.temperature:
-            raise ValueError("guide setting 'temperature' shapes Eq. 6's weights: it has no meaning in 'envelope' mode")
+        if self.mode in ENVELOPE_MODES and self.temperature:
+            raise ValueError(f"guide setting 'temperature' shapes Eq. 6's weights: it has no meaning in '{self.mode}' mode")
         if isinstance(self.anchor_noise, bool) or not isinstance(self.anchor_noise, (int, float)) \
                 or not math.isfinite(self.anchor_noise) or self.anchor_noise <= 0:
             raise ValueError(f"guide setting 'anchor_noise' must be a number > 0, got {self.anchor_noise!r}")
@@ -251,21 +255,31 @@ def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
     return vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
 
 
-def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
-                 scale: float, floor: float, variances: np.ndarray | None = None) -> torch.Tensor:
-    """The guide and its tolerance for a whole image, (1, 4, H, W): R, G, B of ``g`` and
-    ``sigma = beta gbar + floor * scale``. ``estimates`` (5, H, W, 3) are the (guarded)
-    inputs; ``scale`` the image's radiance scale. OIDN denoises the source estimate with
-    its B-only spikes removed (:func:`despike`); with ``cross`` or ``y_weight`` it also
-    denoises ~y, once. ``variances`` (5, H, W), the inputs' variances of the mean, are
-    needed with ``y_weight`` (:func:`y_share`). Whole images only: OIDN has no halo."""
+class GuideImages(NamedTuple):
+    """The guide and the two OIDN images it is made of, each (3, H, W)."""
+
+    guide: torch.Tensor
+    source: torch.Tensor          # OIDN's image of the (despiked) source estimate
+    y: torch.Tensor | None        # OIDN's image of ~y, when it was made
+
+
+def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
+                 scale: float, floor: float, variances: np.ndarray | None = None,
+                 need_y: bool = False) -> GuideImages:
+    """The guide ``g`` of a whole image and OIDN's images it is made of. ``estimates``
+    (5, H, W, 3) are the (guarded) inputs; ``scale`` the image's radiance scale. OIDN
+    denoises the source estimate with its B-only spikes removed (:func:`despike`); with
+    ``cross``, ``y_weight`` or ``need_y`` it also denoises ~y, once. ``variances`` (5, H, W),
+    the inputs' variances of the mean, are needed with ``y_weight`` (:func:`y_share`).
+    Whole images only: OIDN has no halo."""
     mix_y = bool(cfg.y_weight and cfg.source)
     if mix_y and variances is None:
         raise ValueError("guide_planes: the guide's y_weight needs the inputs' variances")
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
     g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
-    if cfg.source and (cfg.cross or mix_y):
+    g_source, gy = g, None
+    if cfg.source and (cfg.cross or mix_y or need_y):
         gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
@@ -276,8 +290,24 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
         if mix_y:
             g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight))
+    elif need_y:
+        gy = g                                          # the source is ~y itself
+    return GuideImages(g, g_source, gy)
+
+
+def planes(g: torch.Tensor, cfg: GuideConfig, scale: float, floor: float) -> torch.Tensor:
+    """The guide planes (1, 4, H, W) of a guide image ``g`` (3, H, W): R, G, B of ``g`` and
+    ``sigma = beta gbar + floor * scale``."""
     sigma = cfg.beta * g.mean(0, keepdim=True) + floor * float(scale)
     return torch.cat([g, sigma], 0)[None].contiguous()
+
+
+def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
+                 scale: float, floor: float, variances: np.ndarray | None = None) -> torch.Tensor:
+    """The guide and its tolerance for a whole image, (1, 4, H, W): R, G, B of ``g``
+    (:func:`guide_images`) and ``sigma = beta gbar + floor * scale``."""
+    g = guide_images(estimates, albedo, normal, cfg, scale, floor, variances).guide
+    return planes(g, cfg, scale, floor)
 
 
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,

@@ -33,8 +33,10 @@ from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
-from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale
-from .guide import GuideConfig, envelope, guide_planes, guided_logits
+from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
+from .chooser import Chooser, band, candidates, features
+from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits
+from .guide import planes as guide_planes_of
 from .kpn import KPN
 
 #: Automatic tiles keep the logits of one tile (with halo) below this size ...
@@ -150,9 +152,18 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
     # header problems fail early, before the guide (whose channels need no header)
     from_buffer(buf, replace(model.features, guide=False), (slice(0, 1), slice(0, 1)), scales)
     scale = float(scales.radiance[0]) if scales.radiance is not None else None   # already computed
+    if guide.enabled and guide.mode in ENVELOPE_MODES:
+        chooser = model.chooser if guide.mode == "chooser" else None
+        if guide.mode == "chooser" and chooser is None:
+            raise UsageError("guide mode 'chooser': this model has no chooser "
+                             "(train one with `ppmrecon-train chooser`, or use --guide-mode envelope)")
+        scale = _scale(buf) if scale is None else scale
+        images, planes = buffer_guide_images(buf, guide, guard, scale, need_y=chooser is not None)
+        result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress)
+        if chooser is None:
+            return result
+        return _choose(buf, result.rgb, images, chooser, scale, device, progress)
     planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
-    if guide.enabled and guide.mode == "envelope":
-        return _envelope(buf, planes, guard, guide, device, progress)
 
     def source(rows: slice, cols: slice) -> ModelInputs:
         return from_buffer(buf, model.features, (rows, cols), scales, planes)
@@ -167,15 +178,63 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
                  scale: float | None = None) -> torch.Tensor:
     """:func:`.guide.guide_planes` of a whole (guarded) buffer file, (1, 4, H, W);
     ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
+    return buffer_guide_images(buf, guide, guard, scale)[1]
+
+
+def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig, scale: float | None = None,
+                        need_y: bool = False) -> tuple[GuideImages, torch.Tensor]:
+    """:func:`.guide.guide_images` of a whole (guarded) buffer file and the guide's planes
+    (1, 4, H, W); ``need_y``: OIDN's image of ~y is made even where the guide does not use it."""
     if scale is None:
-        est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
-        scale = float(image_scale(est))
+        scale = _scale(buf)
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
-    return guide_planes(buf.estimates, buf.albedo, buf.normal, guide, scale, floor, buf.variances)
+    images = guide_images(buf.estimates, buf.albedo, buf.normal, guide, scale, floor, buf.variances, need_y)
+    return images, guide_planes_of(images.guide, guide, scale, floor)
 
 
-def _envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
-              device: str | torch.device, progress: ProgressFn | None) -> Denoised:
+def _scale(buf: BufferFile) -> float:
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    return float(image_scale(est))
+
+
+def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages,
+                   scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """The chooser's features (C, H, W) and candidates (K, 3, H, W) of a whole (guarded)
+    buffer file, its envelope (H, W, 3) and its guide's images (:func:`buffer_guide_images`
+    with ``need_y``), ``scale`` its :func:`.guard.image_scale` when the caller has it;
+    training (:mod:`..train.chooser`) and inference share this. Both are
+    views of pixel-major memory (the buffer's own layout): the chooser's convolutions run
+    channels-last on them without a copy."""
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32))             # (5, H, W, 3)
+    y, z = est[0], est[1:]
+    hwc = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (envelope_rgb, buf.albedo, buf.normal)]
+    guide = [t.permute(1, 2, 0) for t in (images.guide, images.source, images.y)]
+    lo, hi = band(y, z)
+    cands = candidates(hwc[0], *guide, z, lo, hi)
+    feats = features(cands, y, lo, hi, torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32)), hwc[1],
+                     hwc[2], _scale(buf) if scale is None else scale, passes_of(buf))
+    return feats.permute(2, 0, 1), cands.permute(2, 3, 0, 1)
+
+
+def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, chooser: Chooser, scale: float,
+            device: str | torch.device, progress: ProgressFn | None) -> Denoised:
+    """The chooser (:mod:`.chooser`) on a whole (guarded) buffer file: no tiles (its
+    memory is a few dozen floats per pixel, about 0.7 GB at 1920x1080)."""
+    device = torch.device(device)
+    feats, cands = chooser_inputs(buf, envelope_rgb, images, scale)
+    image = chooser.to(device).eval().predict(feats[None].to(device), cands[None].to(device))[0].permute(1, 2, 0)
+    # a convex combination of band-held candidates is in the band; the clamp removes rounding
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).to(device)
+    image = torch.clamp(image, *band(est[0], est[1:]))
+    if progress is not None:
+        progress(1, 1)
+    if not torch.isfinite(image).all():
+        raise NonFiniteOutputError("the chooser produced NaN/Inf (radiance beyond float32 range?)")
+    return Denoised(image.contiguous().cpu().numpy(), None)
+
+
+def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
+                    device: str | torch.device = "cpu", progress: ProgressFn | None = None) -> Denoised:
     """The guide's envelope (:func:`.guide.envelope`) of a whole (guarded) buffer file: no
     network, no tiles (a few whole-image passes of elementwise work and one blur)."""
     device = torch.device(device)

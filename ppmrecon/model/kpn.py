@@ -26,6 +26,7 @@ from ..errors import UsageError
 from ..fileio import unknown_keys
 from .features import FeatureConfig
 from .guard import GuardConfig
+from .chooser import Chooser
 from .guide import GuideConfig, net_channels
 
 PRESETS_DIR: Path = MODELS
@@ -136,6 +137,8 @@ class KPN(nn.Module):
                 nn.init.zeros_(m.bias)
         if guide.enabled:
             nn.init.zeros_(self.head.weight)   # residual on the prior: start from the guide
+        #: the learned choice on top of the envelope (:mod:`.chooser`), when the checkpoint has one
+        self.chooser: Chooser | None = None
 
     @property
     def window(self) -> int:

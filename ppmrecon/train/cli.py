@@ -5,6 +5,7 @@
     ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
     torchrun --nproc-per-node 2 -m ppmrecon.train fit data/cpu --out runs/cpu [--ddp]
     ppmrecon-train fit data/cpu --out runs/cpu --ddp --nproc-per-node 2   (torchrun --standalone for you)
+    ppmrecon-train chooser data/v3_cpu --out runs/chooser [--config cpu] [--resume]
 
 ``--config`` takes a JSON file or the name of one that ships with the package
 (``ppmrecon/data/configs/data/*.json`` for ``generate``, ``.../train/*.json`` for ``fit``).
@@ -12,6 +13,8 @@
 ``generate`` renders randomised scenes (never the literature scenes) into buffer files
 and references with a manifest; it is resumable. ``fit`` trains on 64x64 augmented
 patches with the loss of paper 002 Eq. 8 and writes a checkpoint every epoch.
+``chooser`` trains the learned choice on top of the shipped envelope
+(:mod:`ppmrecon.model.chooser`) and writes ``chooser.pt``; resumable.
 """
 
 from __future__ import annotations
@@ -51,7 +54,7 @@ def config_file(kind: str):
 
 def build_parser() -> ArgumentParser:
     p = ArgumentParser(prog=PROG, description="Generate training data and train the ppmrecon denoiser.")
-    sub = p.add_subparsers(dest="command", metavar="{generate,fit}", parser_class=ArgumentParser)
+    sub = p.add_subparsers(dest="command", metavar="{generate,fit,chooser}", parser_class=ArgumentParser)
     g = sub.add_parser("generate", help="render a training data set (resumable)",
                        description="Render randomised training scenes into buffer files + references.")
     g.add_argument("--config", type=config_file("data"), default=builtin_configs("data").get("cpu"),
@@ -106,6 +109,26 @@ def build_parser() -> ArgumentParser:
                    help="with --ddp outside torchrun: start N processes on this machine through "
                         "`torchrun --standalone` (under torchrun: not allowed, torchrun's own option sets it)")
     f.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
+
+    c = sub.add_parser("chooser", help="train the learned choice on top of the envelope (resumable)",
+                       description="Train the chooser (ppmrecon/model/chooser.py): per-pixel weights over "
+                                   "consistent candidates, on a generated data set's training split; scores "
+                                   "its validation split; writes <out>/chooser.pt.")
+    c.add_argument("data", type=Path, help="data-set folder made by `ppmrecon-train generate`")
+    c.add_argument("--out", type=Path, required=True, help="run folder (state.pt, history.json, chooser.pt)")
+    c.add_argument("--config", type=config_file("chooser"), default=builtin_configs("chooser").get("cpu"),
+                   metavar="NAME|FILE.json",
+                   help=f"chooser settings: a JSON file or a shipped config ({', '.join(builtin_configs('chooser'))}; "
+                        "default: cpu)")
+    c.add_argument("--base-model", default=None, metavar="CKPT",
+                   help="the model whose guard and guide make the envelope (default: the shipped one)")
+    c.add_argument("--steps", type=positive_int, default=None, help="training steps (overrides the config)")
+    c.add_argument("--seed", type=int, default=None)
+    c.add_argument("--resume", action="store_true", help="continue the run folder's training")
+    c.add_argument("--max-seconds", type=positive_float, default=None,
+                   help="stop at the first saved state after this many seconds (then --resume)")
+    c.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
+    c.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
     return p
 
 
@@ -157,6 +180,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     import torch
 
+    if args.command == "chooser":
+        return _chooser(args)
+
     from .loop import TrainConfig, train
 
     cfg = TrainConfig.load(args.config) if args.config else TrainConfig()
@@ -189,6 +215,47 @@ def main(argv: Sequence[str] | None = None) -> int:
         v = history[-1]["val"]
         print(f"{PROG}: {args.out}/model.pt after {history[-1]['epoch']} epochs: validation relMSE "
               f"{v['output']:.4f}, best single input {v['best_single']:.4f} ({v['ratio']:.2f}x)")
+    return 0
+
+
+def _chooser(args: argparse.Namespace) -> int:
+    """``ppmrecon-train chooser``."""
+    import torch
+
+    from ..cli_common import Progress
+    from .chooser import ChooserTrainConfig, train_chooser
+
+    if args.config is None:
+        raise UsageError("--config: no chooser config given and none ships with the package")
+    cfg = ChooserTrainConfig.load(args.config)
+    if args.steps is not None:
+        cfg.steps = args.steps
+    if args.seed is not None:
+        cfg.seed = args.seed
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    bar = Progress("chooser", total=cfg.steps, quiet=args.quiet)
+
+    def report(step: int, value: float) -> None:
+        bar.update(step, force=step == cfg.steps, loss=f"{value:.3f}")
+
+    try:
+        history = train_chooser(args.data, args.out, cfg, args.base_model, args.resume, _warn, report,
+                                args.max_seconds)
+    finally:
+        bar.close()
+    if not history["finished"]:
+        done = history["losses"][-1]["step"] if history["losses"] else 0
+        print(f"{PROG}: {args.out}: stopped at step {done} of {cfg.steps}; continue with --resume")
+        return 0
+    v = history.get("validation")
+    line = f"{PROG}: {args.out}/chooser.pt after {cfg.steps} steps on {history['train_images']} images"
+    if v:
+        c, e = v["chooser"], v["envelope"]
+        line += (f"; validation ({v['images']} images): {c['ratio']:.3f} of the best input (envelope "
+                 f"{e['ratio']:.3f}), 8x8 {c['ratio_8x8']:.2f} ({e['ratio_8x8']:.2f}), worse than best "
+                 f"{c['worse']} ({e['worse']})")
+    print(line)
     return 0
 
 

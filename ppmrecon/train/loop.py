@@ -36,7 +36,7 @@ from ..model.checkpoint import load_checkpoint, save_checkpoint
 from ..model.combine import combine
 from ..model.features import FeatureConfig, ModelInputs
 from ..model.guard import GuardConfig, finish
-from ..model.guide import GuideConfig, guided_logits
+from ..model.guide import ENVELOPE_MODES, GuideConfig, guided_logits
 from ..model.infer import denoise_inputs
 from ..model.kpn import build
 from .dataset import PatchSampler, Sample, load_split
@@ -195,9 +195,10 @@ def train(data: str | os.PathLike, out: str | os.PathLike, cfg: TrainConfig, res
         guide = GuideConfig.from_dict(cfg.guide)
     except (TypeError, ValueError) as exc:
         raise UsageError(f"training config: {exc}") from None
-    if guide.enabled and guide.mode == "envelope":
-        raise UsageError("training config: guide mode 'envelope' runs no network, there is nothing to train; "
-                         "train with mode 'weights' and ship with scripts/ship_model.py --guide-mode envelope")
+    if guide.enabled and guide.mode in ENVELOPE_MODES:
+        raise UsageError(f"training config: guide mode '{guide.mode}' runs no Eq. 6 network, there is nothing to "
+                         "train here; train with mode 'weights' and ship with scripts/ship_model.py --guide-mode "
+                         "envelope (the chooser trains with `ppmrecon-train chooser`)")
     torch.manual_seed(cfg.seed)
     shard = (dist.rank, dist.world) if dist is not None else None
     train_samples = load_split(data, "train", features, warn=warn, guard=guard,
