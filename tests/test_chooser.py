@@ -122,7 +122,7 @@ def test_denoise_runs_the_chooser_on_the_envelope():
     guide = model.guide.in_mode("envelope")
     images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
     env = buffer_envelope(guarded, planes, model.guard, guide).rgb
-    feats, cands = chooser_inputs(guarded, env, images)
+    feats, cands, _, _ = chooser_inputs(guarded, env, images)
     expected = model.chooser.predict(feats[None], cands[None])[0].permute(1, 2, 0).numpy()
     np.testing.assert_allclose(out, expected, rtol=1e-5, atol=1e-6)
     est = torch.from_numpy(guarded.estimates)

@@ -15,9 +15,12 @@ every candidate and of the inputs' noise. Its head starts at zero and the prior 
 logit :attr:`ChooserConfig.prior` on the envelope, so an untrained chooser is mostly the
 envelope.
 
-Measured before it shipped (``benchmarks/bench_refine.py``, 4-fold by scene over 232 images
-of ``data/v3_cpu``, width 24): 0.511 of the best input against the envelope's 0.535, 8x8
-0.91 against 0.93, 12 images worse than their best input against 15.
+Measured held out (``benchmarks/bench_refine.py --steps 3000``: 4-fold by scene over the 280
+images of 35 scenes of ``data/v3_cpu``, each fold scored by a chooser trained on the other
+three), geometric means over each image's best single input: width 12 (shipped) 0.496 against
+the envelope's 0.539, 6 images worse than their best input against 15, 8x8-block ratio 0.94
+against 0.94 (182 and 178 images at or below 1); width 16: 0.511, 10 worse, 8x8 0.93. Width 12
+keeps ``ppmrecon-denoise`` within 2x OIDN's time at 1280x720 on 2 cores.
 """
 
 from __future__ import annotations
@@ -45,7 +48,7 @@ FEATURE_NORMAL_X = 3 * N_CANDIDATES + 3 + 5 + 3
 class ChooserConfig:
     """The chooser's architecture; travels inside the checkpoint (``"chooser"``)."""
 
-    width: int = 16        # channels of each hidden 3 x 3 convolution
+    width: int = 12        # channels of each hidden 3 x 3 convolution
     layers: int = 3        # hidden convolutions
     prior: float = 3.0     # logit of the envelope before the network's correction
 

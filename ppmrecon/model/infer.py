@@ -49,6 +49,15 @@ MIN_TILE = 32
 ProgressFn = Callable[[int, int], None]
 
 
+class ChooserInputs(NamedTuple):
+    """What the chooser reads for one image (:func:`chooser_inputs`)."""
+
+    features: torch.Tensor     # (C, H, W), a view of pixel-major memory
+    candidates: torch.Tensor   # (K, 3, H, W), likewise
+    lo: torch.Tensor           # (H, W, 3): the band of the five estimates
+    hi: torch.Tensor
+
+
 class Denoised(NamedTuple):
     rgb: np.ndarray                    # (H, W, 3) float32
     weights_per_z: np.ndarray | None   # (4, H, W) float32: sum_i w^j_{c,i}, the share of ~z^j;
@@ -198,8 +207,8 @@ def _scale(buf: BufferFile) -> float:
 
 
 def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages,
-                   scale: float | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """The chooser's features (C, H, W) and candidates (K, 3, H, W) of a whole (guarded)
+                   scale: float | None = None) -> ChooserInputs:
+    """The chooser's features (C, H, W), candidates (K, 3, H, W) and band of a whole (guarded)
     buffer file, its envelope (H, W, 3) and its guide's images (:func:`buffer_guide_images`
     with ``need_y``), ``scale`` its :func:`.guard.image_scale` when the caller has it;
     training (:mod:`..train.chooser`) and inference share this. Both are
@@ -213,7 +222,7 @@ def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImage
     cands = candidates(hwc[0], *guide, z, lo, hi)
     feats = features(cands, y, lo, hi, torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32)), hwc[1],
                      hwc[2], _scale(buf) if scale is None else scale, passes_of(buf))
-    return feats.permute(2, 0, 1), cands.permute(2, 3, 0, 1)
+    return ChooserInputs(feats.permute(2, 0, 1), cands.permute(2, 3, 0, 1), lo, hi)
 
 
 def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, chooser: Chooser, scale: float,
@@ -221,11 +230,10 @@ def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, choo
     """The chooser (:mod:`.chooser`) on a whole (guarded) buffer file: no tiles (its
     memory is a few dozen floats per pixel, about 0.7 GB at 1920x1080)."""
     device = torch.device(device)
-    feats, cands = chooser_inputs(buf, envelope_rgb, images, scale)
+    feats, cands, lo, hi = chooser_inputs(buf, envelope_rgb, images, scale)
     image = chooser.to(device).eval().predict(feats[None].to(device), cands[None].to(device))[0].permute(1, 2, 0)
     # a convex combination of band-held candidates is in the band; the clamp removes rounding
-    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).to(device)
-    image = torch.clamp(image, *band(est[0], est[1:]))
+    image = torch.clamp(image, lo.to(device), hi.to(device))
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
