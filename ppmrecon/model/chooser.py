@@ -49,7 +49,7 @@ class ChooserConfig:
     """The chooser's architecture; travels inside the checkpoint (``"chooser"``)."""
 
     width: int = 12        # channels of each hidden 3 x 3 convolution
-    layers: int = 3        # hidden convolutions
+    layers: int = 2        # hidden convolutions
     prior: float = 3.0     # logit of the envelope before the network's correction
 
     def __post_init__(self) -> None:

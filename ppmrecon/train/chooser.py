@@ -55,7 +55,7 @@ class ChooserTrainConfig:
     lr: float = 2e-3
     lowfreq: float = 1.0
     width: int = 12
-    layers: int = 3
+    layers: int = 2
     prior: float = 3.0
     seed: int = 0
     save_every: int = 250
