@@ -15,7 +15,8 @@ has no trained weights (the envelope, OIDN, the guide alone), not for a trained 
 Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting):
 ``kpn`` = a checkpoint as shipped (``--model``, repeatable); ``+guide`` = the same with the
 guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode (a chooser
-checkpoint: ``NAME envelope``, the envelope without its chooser); ``NAME cross=C`` = an
+checkpoint: ``NAME envelope``, the envelope without its chooser); ``NAME chooser`` = a
+checkpoint that carries a chooser but does not run it by default, with it; ``NAME cross=C`` = an
 envelope checkpoint with the guide's cross rule at C (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
@@ -100,6 +101,10 @@ def variants(models: dict) -> dict:
             other = "weights" if net.guide.mode == "envelope" else "envelope"
             g = net.guide.in_mode(other)
             out[f"{name} {other}"] = lambda buf, net=net, guard=guard, g=g: denoise(buf, net, guard=guard, guide=g).rgb
+            if net.chooser is not None and net.guide.mode != "chooser":
+                g = net.guide.in_mode("chooser")
+                out[f"{name} chooser"] = lambda buf, net=net, guard=guard, g=g: denoise(
+                    buf, net, guard=guard, guide=g).rgb
             if net.guide.mode in ENVELOPE_MODES and net.guide.source:
                 for cross in (0.0, 2.0, 4.0):
                     if cross != net.guide.cross:

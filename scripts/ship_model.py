@@ -14,7 +14,8 @@ Without a run: re-ships the current ``default.pt`` with changed guide settings (
 network weights); its card keeps what came from the training run and gets the new
 shipped-reconstruction row, the command, and the held-out figures of ``--bench``.
 ``--chooser`` attaches the chooser of a ``ppmrecon-train chooser`` run (trained on this
-default's guard and guide) and sets the guide to mode "chooser"; the card gets its row.
+default's guard and guide) and sets the guide to mode "chooser" (unless ``--guide-mode`` says
+otherwise: ``--guide-mode envelope`` ships it opt-in); the card gets its row.
 """
 
 from __future__ import annotations
@@ -198,13 +199,15 @@ def command_flags(args: argparse.Namespace) -> str:
 
 
 def chooser_row(model, meta: dict) -> list[str]:
-    """The card's "chooser" row: its architecture, data, training and validation figures."""
-    if model.chooser is None or not (model.guide.enabled and model.guide.mode == "chooser"):
+    """The card's "chooser" row: its architecture, data, training and validation figures;
+    whether it runs by default or only with ``--guide-mode chooser``."""
+    if model.chooser is None or not model.guide.enabled:
         return []
     info = meta.get("chooser", {})
     cfg, val = info.get("config", {}), info.get("validation") or {}
     params = sum(p.numel() for p in model.chooser.parameters())
-    row = (f"| chooser | {model.chooser.cfg.to_dict()}, {params} parameters (ppmrecon/model/chooser.py: softmax "
+    how = "runs by default" if model.guide.mode == "chooser" else "opt-in: `ppmrecon-denoise --guide-mode chooser`"
+    row = (f"| chooser | {how}; {model.chooser.cfg.to_dict()}, {params} parameters (ppmrecon/model/chooser.py: softmax "
            f"weights per pixel over {', '.join(CANDIDATES)}, each held in the five estimates' range); trained by "
            f"`ppmrecon-train chooser` on `{info.get('data', '?')}` ({info.get('train_images', '?')} training images, "
            f"{cfg.get('steps', '?')} steps of {cfg.get('batch', '?')} x {cfg.get('crop', '?')} px crops, "
@@ -270,7 +273,7 @@ def reship(args: argparse.Namespace) -> None:
         ckpt.model.chooser = trained.model.chooser
         meta["chooser"] = trained.meta.get("chooser", {})
         before_mode = args.guide_mode
-        args.guide_mode = args.guide_mode or "chooser"
+        args.guide_mode = args.guide_mode or "chooser"   # attached to run, unless --guide-mode says otherwise
         ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
         args.guide_mode = before_mode
     else:

@@ -94,11 +94,12 @@ def excess(out: np.ndarray, buf: B.BufferFile, clean: np.ndarray) -> np.ndarray:
 
 # ------------------------------------------------------- the shipped model on fireflies
 
-@pytest.mark.parametrize("mode", ["envelope", "weights"])
+@pytest.mark.parametrize("mode", ["envelope", "weights", "chooser"])
 @pytest.mark.parametrize("amp", [1e3, 1e4, 1e5])
 @pytest.mark.parametrize("which", ["y", "z", "both"])
 def test_shipped_model_with_guard_is_no_worse_than_the_best_input(shipped, which, amp, mode):
-    """In both guide modes: the envelope (the shipped default) and Eq. 6 with the network."""
+    """In every guide mode: the envelope (the shipped default), Eq. 6 with the network, and
+    the envelope with the shipped chooser (opt-in)."""
     buf, clean = synthetic()
     buf = with_fireflies(buf, amp, which)
     out = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32", guide=replace(shipped.guide, mode=mode)).rgb
@@ -410,9 +411,10 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
         C.load_checkpoint(path)
     # the shipped model is issue 12's recipe: trained with the guard and the new features
     assert shipped.guard == DEFAULT_ON and shipped.features == FeatureConfig(scale_free=True, outliers=True)
-    # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py,
-    # bench_refine.py): the envelope with a trained chooser on top
-    assert shipped.guide.enabled and shipped.guide.mode == "chooser" and shipped.chooser is not None
+    # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py): the
+    # envelope; its chooser (better on generated validation scenes, worse on the literature
+    # scenes: benchmarks/results/chooser) travels with it, opt-in
+    assert shipped.guide.enabled and shipped.guide.mode == "envelope" and shipped.chooser is not None
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
