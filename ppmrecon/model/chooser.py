@@ -15,12 +15,13 @@ every candidate and of the inputs' noise. Its head starts at zero and the prior 
 logit :attr:`ChooserConfig.prior` on the envelope, so an untrained chooser is mostly the
 envelope.
 
-Measured held out (``benchmarks/bench_refine.py --steps 3000``: 4-fold by scene over the 280
-images of 35 scenes of ``data/v3_cpu``, each fold scored by a chooser trained on the other
-three), geometric means over each image's best single input: width 12 (shipped) 0.496 against
-the envelope's 0.539, 6 images worse than their best input against 15, 8x8-block ratio 0.94
-against 0.94 (182 and 178 images at or below 1); width 16: 0.511, 10 worse, 8x8 0.93. Width 12
-keeps ``ppmrecon-denoise`` within 2x OIDN's time at 1280x720 on 2 cores.
+Measured held out (``benchmarks/bench_refine.py --steps 3000``: 4-fold by scene over the 288
+images of 36 scenes of ``data/v3_cpu``, each fold scored by a chooser trained on the other
+three with the shipped config), geometric means over each image's best single input: 0.497
+against the envelope's 0.535, 7 images worse than their best input against 15, 8x8-block
+ratio 0.92 against 0.94. On the literature scenes (``benchmarks/results/chooser``) it is
+worse than the envelope (0.474 against 0.436; at N = 1024, beyond the training data's 256,
+box 1.33x its best input), so the shipped model carries it opt-in (``--guide-mode chooser``).
 """
 
 from __future__ import annotations

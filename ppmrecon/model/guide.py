@@ -46,9 +46,9 @@ the guide's prior and the shipped network, 0 / 0 images worse than their best in
 (against 2 / 0), 8x8-block ratio 0.95 / 1.23 (against 1.04 / 1.16): the softmax over terms
 near g averages their noise, the clamp returns g wherever the estimates leave it room.
 
-**Chooser mode** (``mode = "chooser"``, the shipped default): the envelope and seven other
-images held in the same range, mixed per pixel by a small trained network
-(:mod:`.chooser`); consistent by the same argument.
+**Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
+envelope and seven other images held in the same range, mixed per pixel by a small trained
+network (:mod:`.chooser`); consistent by the same argument.
 
 **OIDN's image of ~y in the guide** (``y_weight`` F, :func:`y_share`): after the cross rule
 the guide is ``g + w (OIDN(~y) - g)``, ``w = F Vz / (Vy + F Vz)`` from the inputs' locally
