@@ -217,7 +217,7 @@ def chooser_row(model, meta: dict) -> list[str]:
         row += (f"; validation split ({val['images']} images, never trained on): {c['ratio']:.3f} of the best "
                 f"input (envelope {e['ratio']:.3f}), 8x8 {c['ratio_8x8']:.3f} ({e['ratio_8x8']:.3f}), worse than "
                 f"the best input {c['worse']} ({e['worse']})")
-    return [row + " |"]
+    return [row + "; on other scenes: the held-out table below (`NAME chooser` rows) |"]
 
 
 def shipped_row(guide: GuideConfig) -> list[str]:
