@@ -32,27 +32,15 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
-from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
 
-NAMES = ("chooser", "envelope", "oidn(z4)")
-
-
-def geo(values) -> float:
-    return float(np.exp(np.mean(np.log(values)))) if len(values) else float("nan")
-
-
-def summarise(rows: list[dict], key: str) -> dict:
-    r = np.array([row[key] for row in rows])
-    r8 = np.array([row[key + "_8x8"] for row in rows])
-    return {"images": len(rows), "ratio": geo(r), "worst": float(r.max()), "worse": int((r > 1).sum()),
-            "ratio_8x8": geo(r8), "blocks_ok": int((r8 <= 1).sum())}
+BASELINES = ("envelope", "oidn(z4)")
+NAMES = ("chooser", *BASELINES)
 
 
 def main() -> None:
@@ -69,7 +57,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "refine")
     args = ap.parse_args()
     from ppmrecon.model.checkpoint import load_checkpoint
-    from ppmrecon.train.chooser import ChooserTrainConfig, fit, prepare
+    from ppmrecon.train.chooser import ChooserTrainConfig, evaluate, fit, prepare, summary
     from ppmrecon.train.cli import builtin_configs
 
     torch.set_num_threads(2)
@@ -86,23 +74,15 @@ def main() -> None:
     for fold in range(args.folds):
         held = [it for it in items if index[scene_of[it.name]] % args.folds == fold]
         net, _ = fit([it for it in items if index[scene_of[it.name]] % args.folds != fold], replace(cfg, seed=fold))
-        for it in held:
-            ref = it.reference.permute(1, 2, 0).numpy()
-            row = {"image": it.name, "family": it.family, "split": it.split, "passes": it.passes}
-            for name, img in (("chooser", net.predict(it.features[None], it.candidates[None])[0]),
-                              ("envelope", it.candidates[0]), ("oidn(z4)", it.candidates[2])):
-                img = img.permute(1, 2, 0).numpy()
-                row[name] = relmse(img, ref) / it.best
-                row[name + "_8x8"] = relmse_blocks(img, ref) / it.best_8x8
-            rows.append(row)
+        rows += evaluate(net, held, BASELINES)
         print(f"fold {fold + 1}/{args.folds} done ({time.perf_counter() - t0:.0f}s)", flush=True)
     groups = {"all": rows, "val split": [r for r in rows if r["split"] == "val"],
               **{f"N = {n}": [r for r in rows if r["passes"] == n] for n in sorted({r["passes"] for r in rows})},
               **{f"family {f}": [r for r in rows if r["family"] == f] for f in sorted({r["family"] for r in rows})}}
-    summary = {g: {n: summarise(rs, n) for n in NAMES} for g, rs in groups.items() if rs}
+    summaries = {g: summary(rs, NAMES) for g, rs in groups.items() if rs}
     minutes = (time.perf_counter() - t0) / 60
     write_json(args.out / "refine.json", {"args": {k: str(v) for k, v in vars(args).items()}, "config": vars(cfg),
-                                          "rows": rows, "summary": summary, "minutes": minutes})
+                                          "rows": rows, "summary": summaries, "minutes": minutes})
     cmd = (f"benchmarks/bench_refine.py --data {args.data} --config {args.config} --folds {args.folds} "
            f"--steps {args.steps}" + (f" --width {args.width}" if args.width else "")
            + (f" --layers {args.layers}" if args.layers else "")
@@ -117,10 +97,10 @@ def main() -> None:
              "or the anchor).", "",
              "| images | n | " + " | ".join(f"{n}: ratio (worst, worse) / 8x8 (ok)" for n in NAMES) + " |",
              "|---|---:|" + "---|" * len(NAMES)]
-    for g, per in summary.items():
+    for g, per in summaries.items():
         cells = [f"{s['ratio']:.3f} ({s['worst']:.2f}, {s['worse']}) / {s['ratio_8x8']:.2f} ({s['blocks_ok']})"
                  for s in (per[n] for n in NAMES)]
-        lines.append(f"| {g} | {per[NAMES[0]]['images']} | " + " | ".join(cells) + " |")
+        lines.append(f"| {g} | {per['images']} | " + " | ".join(cells) + " |")
     write_text(args.out / "refine.md", "\n".join(lines) + "\n")
     print("\n".join(lines))
 

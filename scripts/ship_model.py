@@ -170,22 +170,22 @@ def main() -> None:
     print(f"shipped {ckpt_path} -> {DEFAULT_MODEL} ({DEFAULT_MODEL.stat().st_size / 1024:.0f} KB)")
 
 
-def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path) -> GuideConfig:
-    """``guide`` with the settings the command line changes (mode, y_weight)."""
-    if (args.guide_mode or args.guide_y_weight is not None or args.guide_cross is not None) and not guide.enabled:
+def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
+                  mode: str | None = None) -> GuideConfig:
+    """``guide`` with the settings the command line changes (mode, y_weight, cross);
+    ``mode``: the mode when --guide-mode does not give one."""
+    mode = args.guide_mode or mode
+    values = (("y_weight", args.guide_y_weight, "--guide-y-weight"), ("cross", args.guide_cross, "--guide-cross"))
+    if (mode or any(v is not None for _, v, _ in values)) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
-    if args.guide_mode and args.guide_mode != guide.mode:
-        guide = guide.in_mode(args.guide_mode)
-    if args.guide_y_weight is not None:
-        try:
-            guide = replace(guide, y_weight=args.guide_y_weight)
-        except ValueError as exc:
-            sys.exit(f"ship_model: --guide-y-weight: {exc}")
-    if args.guide_cross is not None:
-        try:
-            guide = replace(guide, cross=args.guide_cross)
-        except ValueError as exc:
-            sys.exit(f"ship_model: --guide-cross: {exc}")
+    if mode and mode != guide.mode:
+        guide = guide.in_mode(mode)
+    for key, value, option in values:
+        if value is not None:
+            try:
+                guide = replace(guide, **{key: value})
+            except ValueError as exc:
+                sys.exit(f"ship_model: {option}: {exc}")
     return guide
 
 
@@ -272,12 +272,8 @@ def reship(args: argparse.Namespace) -> None:
                      f"{DEFAULT_MODEL}'s; train it again with this default as --base-model")
         ckpt.model.chooser = trained.model.chooser
         meta["chooser"] = trained.meta.get("chooser", {})
-        before_mode = args.guide_mode
-        args.guide_mode = args.guide_mode or "chooser"   # attached to run, unless --guide-mode says otherwise
-        ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
-        args.guide_mode = before_mode
-    else:
-        ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL)
+    # an attached chooser runs by default, unless --guide-mode says otherwise
+    ckpt.model.guide = changed_guide(before, args, DEFAULT_MODEL, "chooser" if args.chooser is not None else None)
     card_path = DEFAULT_MODEL.with_name("default.md")
     card = card_path.read_text().splitlines()
     history = list(meta.get("reshipped", []))

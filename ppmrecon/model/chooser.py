@@ -138,11 +138,6 @@ class Chooser(nn.Module):
         prior[0, 0] = cfg.prior
         self.register_buffer("prior", prior)
 
-    @property
-    def radius(self) -> int:
-        """Pixels of context a weight depends on, per side."""
-        return self.cfg.layers
-
     def weights(self, feats: torch.Tensor) -> torch.Tensor:
         """The softmax weights (B, K, H, W)."""
         return torch.softmax(self.head(self.body(feats)) + self.prior, 1)

@@ -278,7 +278,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     Whole images only: OIDN has no halo."""
     mix_y = bool(cfg.y_weight and cfg.source)
     if mix_y and variances is None:
-        raise ValueError("guide_planes: the guide's y_weight needs the inputs' variances")
+        raise ValueError("guide_images: the guide's y_weight needs the inputs' variances")
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
     g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)

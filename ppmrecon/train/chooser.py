@@ -37,7 +37,7 @@ from ..errors import UsageError
 from ..fileio import atomic_write, load_json_config, write_json
 from ..metrics import relmse, relmse_blocks, relmse_map
 from ..model.checkpoint import load_checkpoint, model_path, save_checkpoint
-from ..model.chooser import FEATURE_NORMAL_X, Chooser, ChooserConfig
+from ..model.chooser import CANDIDATES, FEATURE_NORMAL_X, Chooser, ChooserConfig
 from ..model.guard import guard_buffer
 from ..model.infer import buffer_envelope, buffer_guide_images, chooser_inputs
 from .datagen import REFERENCE, load_manifest
@@ -224,15 +224,21 @@ def fit(items: list[Item], cfg: ChooserTrainConfig, state_path: Path | None = No
     return net.eval(), history
 
 
-def evaluate(net: Chooser, items: list[Item]) -> list[dict[str, Any]]:
-    """Per item: relMSE and 8x8 relMSE of the chooser and of the envelope over the best input's."""
+#: the candidates :func:`evaluate` scores beside the chooser by default
+BASELINES = ("envelope",)
+
+
+def evaluate(net: Chooser, items: list[Item], baselines: tuple[str, ...] = BASELINES) -> list[dict[str, Any]]:
+    """Per item: relMSE and 8x8 relMSE of the chooser and of the candidates named in
+    ``baselines`` (:data:`..model.chooser.CANDIDATES`) over the best input's."""
     rows = []
     with torch.no_grad():
         for it in items:
             ref = it.reference.permute(1, 2, 0).numpy()
-            row = {"image": it.name, "family": it.family, "passes": it.passes}
-            for name, img in (("chooser", net.predict(it.features[None], it.candidates[None])[0]),
-                              ("envelope", it.candidates[0])):
+            row = {"image": it.name, "family": it.family, "split": it.split, "passes": it.passes}
+            images = [("chooser", net.predict(it.features[None], it.candidates[None])[0])]
+            images += [(name, it.candidates[CANDIDATES.index(name)]) for name in baselines]
+            for name, img in images:
                 img = img.permute(1, 2, 0).numpy()
                 row[name] = relmse(img, ref) / it.best
                 row[name + "_8x8"] = relmse_blocks(img, ref) / it.best_8x8
@@ -240,10 +246,10 @@ def evaluate(net: Chooser, items: list[Item]) -> list[dict[str, Any]]:
     return rows
 
 
-def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+def summary(rows: list[dict[str, Any]], names: tuple[str, ...] = ("chooser", *BASELINES)) -> dict[str, Any]:
     """Geometric means, worst and counts of :func:`evaluate`'s rows, per method."""
     out: dict[str, Any] = {"images": len(rows)}
-    for name in ("chooser", "envelope"):
+    for name in names:
         r = np.array([row[name] for row in rows])
         r8 = np.array([row[name + "_8x8"] for row in rows])
         out[name] = {"ratio": float(np.exp(np.log(r).mean())), "worst": float(r.max()), "worse": int((r > 1).sum()),
@@ -262,10 +268,8 @@ def train_chooser(data: str | os.PathLike, out: str | os.PathLike, cfg: ChooserT
     state_path = out / "state.pt"
     if state_path.exists() and not resume:
         raise UsageError(f"{out}: a chooser run is already there; pass --resume to continue it, or another --out")
-    if not out.is_dir():
-        if out.exists():
-            raise UsageError(f"{out}: not a folder")
-        out.mkdir(parents=True)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"{out}: not a folder")
     base_path = model_path(base_model)
     base_ckpt = load_checkpoint(base_path)
     base = base_ckpt.model
@@ -276,6 +280,7 @@ def train_chooser(data: str | os.PathLike, out: str | os.PathLike, cfg: ChooserT
     if not train_items:
         raise UsageError(f"{data}: no complete training scene to train the chooser on")
     prepared = time.perf_counter() - t0
+    out.mkdir(parents=True, exist_ok=True)       # only once the inputs are known to be usable
     net, losses = fit(train_items, cfg, state_path, resume, progress, max_seconds)
     finished = bool(losses) and losses[-1]["step"] == cfg.steps
     history = {"config": asdict(cfg), "data": str(data), "base_model": str(base_path), "losses": losses,
