@@ -516,6 +516,10 @@ def test_chooser_config_errors_are_one_line(tiny_data, tmp_path):
         ChooserTrainConfig.load(_chooser_config(tmp_path, lr=0))
     with pytest.raises(UsageError, match="unknown key"):
         ChooserTrainConfig.load(_chooser_config(tmp_path, depth=2))
+    # a data set that is not there: one line, and no empty run folder left behind
+    with pytest.raises(UsageError, match="no such manifest"):
+        train_cli.main(["chooser", str(tmp_path / "nothing"), "--out", str(tmp_path / "r0"), "--quiet"])
+    assert not (tmp_path / "r0").exists()
     root, _ = tiny_data
     with pytest.raises(UsageError, match="smaller than the crop"):
         train_cli.main(["chooser", str(root), "--out", str(tmp_path / "r"), "--config",
