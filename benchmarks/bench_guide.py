@@ -17,7 +17,8 @@ Variants (each is what ``ppmrecon.model.infer.denoise`` writes for that setting)
 guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other guide mode (a chooser
 checkpoint: ``NAME envelope``, the envelope without its chooser); ``NAME chooser`` = a
 checkpoint that carries a chooser but does not run it by default, with it; ``NAME cross=C`` = an
-envelope checkpoint with the guide's cross rule at C (0 = off);
+envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R`` = the same with
+~y left out of the range where it is a lone spike R x above the ~z^j (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -65,6 +66,7 @@ WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the d
 ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
 ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)
 ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in the envelope's guide
+Y_SPIKES = (0.0, 4.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -105,6 +107,12 @@ def variants(models: dict) -> dict:
                 g = net.guide.in_mode("chooser")
                 out[f"{name} chooser"] = lambda buf, net=net, guard=guard, g=g: denoise(
                     buf, net, guard=guard, guide=g).rgb
+            if net.guide.mode in ENVELOPE_MODES:
+                for spike in Y_SPIKES:
+                    if spike != net.guide.y_spike:
+                        g = replace(net.guide, y_spike=spike)
+                        out[f"{name} y_spike={spike:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
+                            buf, net, guard=guard, guide=g).rgb
             if net.guide.mode in ENVELOPE_MODES and net.guide.source:
                 for cross in (0.0, 2.0, 4.0):
                     if cross != net.guide.cross:

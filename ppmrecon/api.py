@@ -143,7 +143,8 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
-            guide_mode: str | None = None, guide_y_weight: float | None = None, tile: int | None = None,
+            guide_mode: str | None = None, guide_y_weight: float | None = None,
+            guide_y_spike: float | None = None, tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -161,7 +162,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     shipped one) or ``weights`` (the prior of Eq. 6's weights, corrected by the network;
     None: the model's), as ``--guide-mode``;
     ``guide_y_weight``: the weight of OIDN's image of ~y in the guide (>= 0; None: the
-    model's), as ``--guide-y-weight``; ``tile``,
+    model's), as ``--guide-y-weight``; ``guide_y_spike``: leave ~y out of a pixel's range
+    where it is a lone spike this many times above the ~z^j (0 = off, else > 1; None: the
+    model's), as ``--guide-y-spike``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -173,7 +176,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     True
     """
     from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
-                            with_guide_y_weight)
+                            with_guide_y_spike, with_guide_y_weight)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -187,6 +190,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
     chosen = with_guide_y_weight(chosen, guide_y_weight, "denoise: guide_y_weight", "guide=")
+    chosen = with_guide_y_spike(chosen, guide_y_spike, "denoise: guide_y_spike", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

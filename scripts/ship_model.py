@@ -55,6 +55,9 @@ def main() -> None:
                          "ship in guide mode 'chooser'")
     ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
                     help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
+    ap.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
+                    help="ship with ~y left out of the envelope's range where it is a lone spike R x above "
+                         "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)")
     args = ap.parse_args()
     if args.run is None:
         reship(args)
@@ -172,10 +175,11 @@ def main() -> None:
 
 def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
                   mode: str | None = None) -> GuideConfig:
-    """``guide`` with the settings the command line changes (mode, y_weight, cross);
+    """``guide`` with the settings the command line changes (mode, y_weight, cross, y_spike);
     ``mode``: the mode when --guide-mode does not give one."""
     mode = args.guide_mode or mode
-    values = (("y_weight", args.guide_y_weight, "--guide-y-weight"), ("cross", args.guide_cross, "--guide-cross"))
+    values = (("y_weight", args.guide_y_weight, "--guide-y-weight"), ("cross", args.guide_cross, "--guide-cross"),
+              ("y_spike", args.guide_y_spike, "--guide-y-spike"))
     if (mode or any(v is not None for _, v, _ in values)) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if mode and mode != guide.mode:
@@ -194,6 +198,7 @@ def command_flags(args: argparse.Namespace) -> str:
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
             + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
             + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
+            + (f" --guide-y-spike {args.guide_y_spike:g}" if args.guide_y_spike is not None else "")
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
@@ -229,7 +234,10 @@ def shipped_row(guide: GuideConfig) -> list[str]:
     chooser = ("; then the chooser (row below) mixes that envelope per pixel with other images held in the "
                "same range (`--guide-mode envelope`: the envelope alone)" if guide.mode == "chooser" else "")
     return [f"| shipped reconstruction | guide mode `{guide.mode}` ({guide.to_dict()}): {mixed}, held inside the "
-            "range of each pixel's five estimates, anchored at low frequencies to "
+            "range of each pixel's five estimates"
+            + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
+               if guide.y_spike else "")
+            + ", anchored at low frequencies to "
             f"~z^{guide.anchor_source} where they differ by more than its noise{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 
@@ -257,9 +265,10 @@ def bench_lines(path: Path) -> list[str]:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None and args.chooser is None:
+    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None \
+            and args.guide_y_spike is None and args.chooser is None:
         sys.exit("ship_model: give a run folder, or a guide setting to change "
-                 "(--guide-mode, --guide-y-weight, --guide-cross, --chooser)")
+                 "(--guide-mode, --guide-y-weight, --guide-cross, --guide-y-spike, --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before = ckpt.model.guide
     meta = dict(ckpt.meta)

@@ -105,6 +105,10 @@ def test_guide_settings_are_validated():
         GuideConfig(source=5)
     with pytest.raises(ValueError, match="unknown guide"):
         GuideConfig.from_dict({"sharpness": 1})
+    for bad in (1.0, 0.5, -2.0, float("inf"), float("nan"), True):
+        with pytest.raises(ValueError, match="y_spike"):
+            GuideConfig(y_spike=bad)
+    assert GuideConfig(y_spike=16).y_spike == 16 and GuideConfig.from_dict({}).y_spike == 0
 
 
 def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
@@ -294,6 +298,46 @@ def test_envelope_returns_the_estimates_when_they_agree():
     np.testing.assert_array_equal(denoise(buf, model).rgb, same[0])
 
 
+def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood():
+    """A ~y pixel far above the ~z^j of its pixel and its own 3 x 3 median is a lone spike;
+    one the ~z^j share (a real bright feature), or one in a bright ~y neighbourhood (a
+    caustic only the narrowest gather resolves) is not; the test is per pixel, not per N."""
+    from ppmrecon.model.guide import lone_y_spikes
+
+    y = torch.full((1, 3, 9, 9), 1.0)
+    z = torch.full((1, 4, 3, 9, 9), 1.0)
+    y[..., 2, 2] = 500.0                                   # alone: a spike
+    y[..., 6, 6] = 500.0                                   # the ~z^j see it too (one of them is enough)
+    z[:, 3, :, 6, 6] = 100.0
+    y[..., 5:8, 1:4] = 200.0                               # a bright ~y patch of 3 x 3
+    y[..., 6, 2] = 2000.0                                  # 10x its neighbours: below 16x
+    spikes = lone_y_spikes(y, z, 1e-3, 16.0)[0, 0]
+    assert bool(spikes[2, 2]) and not bool(spikes[6, 6]) and not bool(spikes[6, 2])
+    assert int(spikes[:4].sum()) == 1                      # nothing else near the lone spike
+    assert not lone_y_spikes(y, z, 1e-3, 1e3)[0, 0].any()   # 500x is below a factor of 1000
+
+
+def test_envelope_keeps_a_lone_y_spike_out_of_the_output():
+    """issue 12, ``0036_bright_emitters``: a ~y firefly that the guard keeps (many passes)
+    and OIDN spreads into the guide; with ``y_spike`` the pixel's range is that of its
+    ~z^j, so the output stays there; without it the output follows the guide towards the
+    spike. Pixels without a spike are unchanged."""
+    buf = make_buffer(32, 32, seed=21)
+    est = buf.estimates.copy()
+    est[0, 16:18, 16:18] = 3e4                             # ~y alone, 1e4 x the image: a 2 x 2 cluster
+    header = dict(buf.header, **{B.H_PASSES: 1 << 20})     # the guard's threshold grows with N: kept
+    buf = replace(buf, estimates=est, header=header)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, replace(ENVELOPE, y_weight=2.0))
+    zmin, zmax = est[1:, 16:18, 16:18].min(0), est[1:, 16:18, 16:18].max(0)
+    off = denoise(buf, model, guide=replace(model.guide, y_spike=0.0)).rgb
+    on = denoise(buf, model, guide=replace(model.guide, y_spike=16.0)).rgb
+    assert float(off[16:18, 16:18].mean()) > 10 * float(zmax.mean())
+    assert bool((on[16:18, 16:18] <= zmax + 1e-6).all()) and bool((on[16:18, 16:18] >= zmin - 1e-6).all())
+    far = np.ones((32, 32), bool)
+    far[8:25, 8:25] = False                                # beyond the guide's reach of the spike
+    np.testing.assert_allclose(on[far], off[far], rtol=1e-5, atol=1e-6)
+
+
 def test_anchor_where_biased_acts_only_beyond_the_anchors_noise():
     """a -> 1 (the plain anchor) where the anchor's low-pass is exact, a -> 0 where its
     variance dwarfs the gap; lowpass_variance of a constant V is V (sum g^2)^2."""
@@ -360,6 +404,34 @@ def test_cli_and_api_guide_y_weight(tmp_path, capsys):
     assert not (tmp_path / "x.exr").exists()
     with pytest.raises(UsageError, match="guide_y_weight"):
         ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_weight=-1.0)
+
+
+def test_cli_and_api_guide_y_spike(tmp_path, capsys):
+    """--guide-y-spike / guide_y_spike= set the envelope's lone-~y-spike factor (the header
+    says it); 1, negative or not a number: one clear line, exit 2, no output."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=15)
+    est = buf.estimates.copy()
+    est[0, 12:14, 12:14] = 1e4
+    buf = replace(buf, estimates=est, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope",
+            "--guide-y-weight", "2"]
+    assert denoise_main(args + ["--guide-y-spike", "16", "-o", str(tmp_path / "s.exr")]) == 0
+    held, header = B.read_rgb(tmp_path / "s.exr")
+    assert header["ppmrecon.guide"].endswith("y=2 spike=16")
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_y_weight=2.0, guide_y_spike=16.0), held)
+    plain = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", guide_y_weight=2.0, guide_y_spike=0.0)
+    assert float(plain[12:14, 12:14].mean()) > 10 * float(held[12:14, 12:14].mean())
+    for bad in ("1", "-3", "nan"):
+        assert denoise_main(args + ["--guide-y-spike", bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert "--guide-y-spike" in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
+    with pytest.raises(UsageError, match="guide_y_spike"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_spike=0.5)
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

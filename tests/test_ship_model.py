@@ -106,6 +106,12 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     assert "| data set, all splits (5) | shipped | 0.500 | 1.20 | 1 |" in card
     with pytest.raises(SystemExit, match="--guide-cross"):
         _run(ship_model, monkeypatch, "--guide-cross", "1")
+    _run(ship_model, monkeypatch, "--guide-y-spike", "16")
+    spiked = C.load_checkpoint(tmp_path / "default.pt")
+    assert spiked.model.guide == replace(after.model.guide, y_spike=16.0)
+    assert "where ~y is a lone spike, 16x above them" in (tmp_path / "default.md").read_text()
+    with pytest.raises(SystemExit, match="--guide-y-spike"):
+        _run(ship_model, monkeypatch, "--guide-y-spike", "0.5")
 
 
 def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path, monkeypatch):

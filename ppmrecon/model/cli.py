@@ -106,6 +106,10 @@ def build_parser() -> ArgumentParser:
                    help="weight of OIDN's image of ~y (hit point A) in the guide, F >= 0: mixed with "
                         "OIDN's image of ~z^4 by the inverse of their inputs' local variances, ~y's "
                         "times F; 0 = ~z^4's alone (default: the checkpoint's; the shipped model's 2)")
+    p.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
+                   help="envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x "
+                        "above every ~z^j of the pixel and its own 3 x 3 median; 0 = off, else R > 1 "
+                        "(default: the checkpoint's; the shipped model's 16)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -192,12 +196,21 @@ def with_guide_y_weight(guide: GuideConfig, weight: float | None, option: str, s
     """``guide`` with ``y_weight`` = ``weight`` (None: unchanged); errors named as
     :func:`with_guide_quality` names them (the guide must be on; the value is checked by
     :class:`.guide.GuideConfig`)."""
-    if weight is None:
+    return _with_guide_number(guide, "y_weight", weight, option, switch)
+
+
+def with_guide_y_spike(guide: GuideConfig, ratio: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``y_spike`` = ``ratio`` (None: unchanged), as :func:`with_guide_y_weight`."""
+    return _with_guide_number(guide, "y_spike", ratio, option, switch)
+
+
+def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
+    if value is None:
         return guide
     if not guide.enabled:
         raise UsageError(f"{option} is part of the guide: it needs {switch} on (the default)")
     try:
-        return replace(guide, y_weight=weight)
+        return replace(guide, **{key: value})
     except ValueError as exc:
         raise UsageError(f"{option}: {exc}") from None
 
@@ -268,6 +281,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
     guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
+    guide = with_guide_y_spike(guide, args.guide_y_spike, "--guide-y-spike", "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -315,7 +329,8 @@ def _guide_header(guide: GuideConfig) -> str:
         return "off"
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode in ENVELOPE_MODES
            else f"beta={guide.beta:g}")
-    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_weight:g}"
+    spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
+    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_weight:g}{spike}"
 
 
 def main(argv: Sequence[str] | None = None) -> int:

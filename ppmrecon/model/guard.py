@@ -363,12 +363,18 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
     return torch.minimum(torch.maximum(image, lo), hi)
 
 
-def band_bounds(y: torch.Tensor, z: torch.Tensor, band: float) -> tuple[torch.Tensor, torch.Tensor]:
+def band_bounds(y: torch.Tensor, z: torch.Tensor, band: float,
+                y_out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The ends ``(min_k X_k / band, max_k X_k * band)`` of :func:`output_band` (band >= 1),
-    each (B, 3, H, W), for callers that clamp more than one image into them."""
+    each (B, 3, H, W), for callers that clamp more than one image into them; ``y_out``
+    (B, 1, H, W) bool: pixels whose range is that of the four ~z^j alone (still
+    consistent: they converge to the truth without ~y)."""
     zmin, zmax = torch.aminmax(z, dim=1)                  # one pass over the four ~z^j
     lo = torch.minimum(y, zmin).clamp_(min=0.0)
     hi = torch.maximum(y, zmax)
+    if y_out is not None:
+        lo = torch.where(y_out, zmin.clamp(min=0.0), lo)
+        hi = torch.where(y_out, zmax, hi)
     if band != 1:
         lo, hi = lo / band, hi * band
     return lo, hi

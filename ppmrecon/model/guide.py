@@ -141,6 +141,10 @@ class GuideConfig:
     #: averages out, and ~y has the smallest bandwidth bias; 0 = the source's image alone
     #: (checkpoints without the setting read as 0)
     y_weight: float = 0.0
+    #: envelope modes: > 1 leaves ~y out of a pixel's range where it is a lone spike, more
+    #: than this factor above every ~z^j of the pixel and above its own 3 x 3 median
+    #: (:func:`lone_y_spikes`); 0 = off (checkpoints without the setting read as 0)
+    y_spike: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -170,6 +174,9 @@ class GuideConfig:
         if isinstance(self.y_weight, bool) or not isinstance(self.y_weight, (int, float)) \
                 or not math.isfinite(self.y_weight) or self.y_weight < 0:
             raise ValueError(f"guide setting 'y_weight' must be a number >= 0, got {self.y_weight!r}")
+        if isinstance(self.y_spike, bool) or not isinstance(self.y_spike, (int, float)) \
+                or not (self.y_spike == 0 or (math.isfinite(self.y_spike) and self.y_spike > 1)):
+            raise ValueError(f"guide setting 'y_spike' must be 0 (off) or a finite factor > 1, got {self.y_spike!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -237,6 +244,27 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
     out = source.clone()
     out[:, rows[spike], cols[spike]] = med[:, spike]
     return out
+
+
+def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:
+    """Where ~y is a lone spike, (B, 1, H, W) bool: its RGB mean exceeds ``ratio`` x (the
+    largest ~z^j's RGB mean at the pixel + eps) *and* ``ratio`` x (its own 3 x 3 median's +
+    eps). y (B, 3, H, W), z (B, 4, 3, H, W), eps a scalar or (B, 1, 1, 1).
+
+    ~y gathers at its own hit point A; a rare path seen from A alone (a small emitter's
+    edge through a specular chain) leaves one bright pixel that no ~z^j and no neighbour
+    shares. The guard keeps it once its threshold has grown with N (16 sqrt N), OIDN
+    spreads it into the guide, and the envelope's range reaches up to it: on
+    ``0036_bright_emitters`` of ``data/v3_cpu`` at N = 256 one such pixel (~y 2.9e3, every
+    ~z^j and the reference about 40) made the output 55x its best input. Leaving ~y out of
+    the range there costs no consistency, as the ~z^j alone converge to the truth; and as
+    the test compares ~y with the ~z^j of the same pixel it does not loosen with N.
+    """
+    from .guard import median3x3
+
+    ylum = y.mean(1, keepdim=True)
+    zmax = z.mean(2).amax(1, keepdim=True)
+    return (ylum > ratio * (zmax + eps)) & (ylum > ratio * (median3x3(y).mean(1, keepdim=True) + eps))
 
 
 def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
@@ -315,7 +343,7 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
 
 
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
-             guard: GuardConfig, cfg: GuideConfig) -> torch.Tensor:
+             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -326,7 +354,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     (B, 3, H, W) and z (B, 4, 3, H, W) the guarded inputs, ``anchor_variance`` (B, 1, H, W)
     the variance of the mean of ~z^m, m = ``cfg.anchor_source``; sigma = ``guard.anchor``
     (0: no anchor), k = ``cfg.anchor_noise``; the range widened by the guard's band h when
-    h > 1. Consistent: the five estimates of pixel c converge to its truth x_c, so does
+    h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
+    (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
+    a float or (B, 1, 1, 1)). Consistent: the five estimates of pixel c converge to its truth x_c, so does
     anything clamped between them (the guard's output band), and the anchor's correction
     vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
@@ -334,9 +364,13 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
     itself wherever the pixel's estimates leave room for it.
     """
-    from .guard import anchor_where_biased, band_bounds
+    from .guard import RELATIVE_FLOOR, anchor_where_biased, band_bounds
 
-    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0)
+    spikes = None
+    if cfg.y_spike:
+        eps = (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale
+        spikes = lone_y_spikes(y, z, eps, cfg.y_spike)
+    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise)

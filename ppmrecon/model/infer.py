@@ -168,7 +168,7 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
                              "(train one with `ppmrecon-train chooser`, or use --guide-mode envelope)")
         scale = _scale(buf) if scale is None else scale
         images, planes = buffer_guide_images(buf, guide, guard, scale, need_y=chooser is not None)
-        result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress)
+        result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress, scale)
         if chooser is None:
             return result
         return _choose(buf, result.rgb, images, chooser, scale, device, progress)
@@ -242,14 +242,19 @@ def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, choo
 
 
 def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
-                    device: str | torch.device = "cpu", progress: ProgressFn | None = None) -> Denoised:
+                    device: str | torch.device = "cpu", progress: ProgressFn | None = None,
+                    scale: float | None = None) -> Denoised:
     """The guide's envelope (:func:`.guide.envelope`) of a whole (guarded) buffer file: no
-    network, no tiles (a few whole-image passes of elementwise work and one blur)."""
+    network, no tiles (a few whole-image passes of elementwise work and one blur);
+    ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
     device = torch.device(device)
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
     variance = torch.from_numpy(np.ascontiguousarray(buf.variances[guide.anchor_source], np.float32))
+    if guide.y_spike and scale is None:
+        scale = _scale(buf)
     with torch.no_grad():
-        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance[None, None].to(device), guard, guide)
+        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance[None, None].to(device), guard, guide,
+                         scale or 0.0)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
