@@ -66,7 +66,7 @@ WINDOWS = (3, 7, 9)         # the combiner's window K for the guide alone (the d
 ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
 ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)
 ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in the envelope's guide
-Y_SPIKES = (0.0, 4.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
+Y_SPIKES = (0.0, 4.0, 8.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:

@@ -109,7 +109,7 @@ def build_parser() -> ArgumentParser:
     p.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
                    help="envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x "
                         "above every ~z^j of the pixel and its own 3 x 3 median; 0 = off, else R > 1 "
-                        "(default: the checkpoint's; the shipped model's 16)")
+                        "(default: the checkpoint's; the shipped model's 8)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
