@@ -18,7 +18,8 @@ guide forced on; ``NAME weights`` / ``NAME envelope`` = the same in the other gu
 checkpoint: ``NAME envelope``, the envelope without its chooser); ``NAME chooser`` = a
 checkpoint that carries a chooser but does not run it by default, with it; ``NAME cross=C`` = an
 envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R`` = the same with
-~y left out of the range where it is a lone spike R x above the ~z^j (0 = off);
+~y left out of the range where it is a lone spike R x above the ~z^j (0 = off); ``NAME anchor_window=W``
+= the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -67,6 +68,8 @@ ENVELOPE_NOISE = (1e-6, 1.0, 4.0)
 ENVELOPE_ANCHORS = (2, 4)   # the anchor's estimate ~z^m (default 3)
 ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in the envelope's guide
 Y_SPIKES = (0.0, 4.0, 8.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
+#: the window (px) over which the anchor's noise correlation is estimated (GuideConfig.anchor_window; 0 = off)
+ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -112,6 +115,11 @@ def variants(models: dict) -> dict:
                     if spike != net.guide.y_spike:
                         g = replace(net.guide, y_spike=spike)
                         out[f"{name} y_spike={spike:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
+                            buf, net, guard=guard, guide=g).rgb
+                for window in ANCHOR_WINDOWS:
+                    if window != net.guide.anchor_window:
+                        g = replace(net.guide, anchor_window=window)
+                        out[f"{name} anchor_window={window:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
                             buf, net, guard=guard, guide=g).rgb
             if net.guide.mode in ENVELOPE_MODES and net.guide.source:
                 for cross in (0.0, 2.0, 4.0):

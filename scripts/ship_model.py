@@ -55,6 +55,9 @@ def main() -> None:
                          "ship in guide mode 'chooser'")
     ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
                     help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
+    ap.add_argument("--guide-anchor-window", type=float, default=None, metavar="W",
+                    help="ship with the anchor's noise correlation estimated over a W px window "
+                         "(GuideConfig.anchor_window; 0 = independent pixels)")
     ap.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
                     help="ship with ~y left out of the envelope's range where it is a lone spike R x above "
                          "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)")
@@ -175,11 +178,13 @@ def main() -> None:
 
 def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
                   mode: str | None = None) -> GuideConfig:
-    """``guide`` with the settings the command line changes (mode, y_weight, cross, y_spike);
+    """``guide`` with the settings the command line changes (mode, y_weight, cross, y_spike,
+    anchor_window);
     ``mode``: the mode when --guide-mode does not give one."""
     mode = args.guide_mode or mode
     values = (("y_weight", args.guide_y_weight, "--guide-y-weight"), ("cross", args.guide_cross, "--guide-cross"),
-              ("y_spike", args.guide_y_spike, "--guide-y-spike"))
+              ("y_spike", args.guide_y_spike, "--guide-y-spike"),
+              ("anchor_window", args.guide_anchor_window, "--guide-anchor-window"))
     if (mode or any(v is not None for _, v, _ in values)) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if mode and mode != guide.mode:
@@ -199,6 +204,7 @@ def command_flags(args: argparse.Namespace) -> str:
             + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
             + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
             + (f" --guide-y-spike {args.guide_y_spike:g}" if args.guide_y_spike is not None else "")
+            + (f" --guide-anchor-window {args.guide_anchor_window:g}" if args.guide_anchor_window is not None else "")
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
@@ -238,7 +244,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
                if guide.y_spike else "")
             + ", anchored at low frequencies to "
-            f"~z^{guide.anchor_source} where they differ by more than its noise{chooser}; the Eq. 6 network is "
+            f"~z^{guide.anchor_source} where they differ by more than its noise"
+            + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
+            + f"{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 
 
@@ -266,9 +274,9 @@ def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
     if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None \
-            and args.guide_y_spike is None and args.chooser is None:
-        sys.exit("ship_model: give a run folder, or a guide setting to change "
-                 "(--guide-mode, --guide-y-weight, --guide-cross, --guide-y-spike, --chooser)")
+            and args.guide_y_spike is None and args.guide_anchor_window is None and args.chooser is None:
+        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-weight, "
+                 "--guide-cross, --guide-y-spike, --guide-anchor-window, --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before = ckpt.model.guide
     meta = dict(ckpt.meta)

@@ -132,6 +132,32 @@ def test_denoise_runs_the_chooser_on_the_envelope():
     np.testing.assert_allclose(denoise(buf, model, guide=guide).rgb, env, rtol=1e-6, atol=1e-7)
 
 
+def test_the_chooser_band_leaves_out_a_lone_y_spike_as_the_envelope_does():
+    """With the guide's ``y_spike`` on, every candidate and the output are held in the
+    ~z^j's range at a lone ~y spike (issue 12, ``0036_bright_emitters``: 9-16x its best
+    input in chooser mode before); elsewhere the band is the five estimates' range."""
+    buf = make_buffer(16, 20, seed=6)
+    est = buf.estimates.copy()
+    est[0, 7:9, 9:11] = 3e4
+    buf = replace(buf, estimates=est, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
+    model = _chooser_model(seed=7)
+    model.guide = replace(model.guide, y_weight=2.0, y_spike=8.0)
+    out = denoise(buf, model).rgb
+    z = est[1:, 7:9, 9:11]
+    assert np.all(out[7:9, 9:11] <= z.max(0) + 1e-5) and np.all(out[7:9, 9:11] >= z.min(0) - 1e-5)
+    guarded = guard_buffer(buf, model.guard)
+    guide = model.guide.in_mode("envelope")
+    images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
+    env = buffer_envelope(guarded, planes, model.guard, guide).rgb
+    _, cands, lo, hi = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
+    full_lo, full_hi = band(torch.from_numpy(guarded.estimates[0]), torch.from_numpy(guarded.estimates[1:]))
+    assert float(cands[:, :, 7:9, 9:11].max()) <= float(z.max()) + 1e-5
+    keep = np.ones((16, 20), bool)
+    keep[7:9, 9:11] = False
+    assert torch.equal(hi[keep], full_hi[keep]) and torch.equal(lo[keep], full_lo[keep])
+    assert float(full_hi[7:9, 9:11].min()) == 3e4
+
+
 def test_cli_chooser_mode_without_a_chooser_is_one_line(tmp_path, capsys):
     buf_path = tmp_path / "in.exr"
     B.write_buffers(buf_path, make_buffer(8, 8))

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import numpy as np
@@ -109,6 +110,10 @@ def test_guide_settings_are_validated():
         with pytest.raises(ValueError, match="y_spike"):
             GuideConfig(y_spike=bad)
     assert GuideConfig(y_spike=16).y_spike == 16 and GuideConfig.from_dict({}).y_spike == 0
+    for bad in (-1.0, float("nan"), float("inf"), False):
+        with pytest.raises(ValueError, match="anchor_window"):
+            GuideConfig(anchor_window=bad)
+    assert GuideConfig.from_dict({}).anchor_window == 0
 
 
 def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
@@ -336,6 +341,55 @@ def test_envelope_keeps_a_lone_y_spike_out_of_the_output():
     far = np.ones((32, 32), bool)
     far[8:25, 8:25] = False                                # beyond the guide's reach of the spike
     np.testing.assert_allclose(on[far], off[far], rtol=1e-5, atol=1e-6)
+
+
+def test_noise_correlation_and_the_variance_of_a_low_pass_of_correlated_noise():
+    """White noise blurred by a Gaussian of s0 px has a Gaussian autocorrelation of width
+    s0: the neighbour correlation estimated from the image alone is exp(-1 / (4 s0^2)), and
+    the predicted variance of its sigma-low-pass matches the measured one (the independent
+    formula underestimates it several times); white noise reads as uncorrelated."""
+    from ppmrecon.model.guard import (correlated_lowpass_variance, gaussian_lowpass, lowpass_variance,
+                                      noise_correlation)
+
+    gen = torch.Generator().manual_seed(5)
+    white = torch.randn(1, 3, 160, 160, generator=gen, dtype=torch.float64)
+    s0, sigma = 2.0, 1.5
+    for noise, rho_true in ((white, 0.0), (gaussian_lowpass(white, s0), math.exp(-1 / (4 * s0 * s0)))):
+        inner = noise[..., 20:-20, 20:-20]                         # away from the replicate border
+        v = torch.full((1, 1, 160, 160), float(inner.var()), dtype=torch.float64)
+        rho = noise_correlation(noise, v, 8.0)[..., 20:-20, 20:-20]
+        assert abs(float(rho.mean()) - rho_true) < 0.05
+        measured = float(gaussian_lowpass(noise, sigma)[..., 20:-20, 20:-20].var())
+        predicted = float(correlated_lowpass_variance(v, noise_correlation(noise, v, 8.0), sigma)[..., 20:-20, 20:-20].mean())
+        assert predicted == pytest.approx(measured, rel=0.2)
+        if rho_true:
+            assert float(lowpass_variance(v, sigma).mean()) < 0.3 * measured
+    # no variance: no noise to correlate; a flat image with variance: fully correlated (clamped)
+    flat = torch.ones(1, 3, 8, 8)
+    assert float(noise_correlation(flat, torch.zeros(1, 1, 8, 8), 2.0).max()) == 0.0
+    assert float(noise_correlation(flat, torch.ones(1, 1, 8, 8), 2.0).min()) == pytest.approx(0.999)
+    rho0 = torch.zeros(1, 1, 8, 8)
+    v = torch.rand(1, 1, 8, 8, generator=gen)
+    assert torch.equal(correlated_lowpass_variance(v, rho0, sigma), lowpass_variance(v, sigma))
+
+
+def test_the_anchor_trusts_a_single_photons_plateau_less_with_the_correlation():
+    """issue 12, ``texture_leaks``: one photon paints a plateau over every pixel within its
+    radius, so the anchor's noise is correlated and its low-pass keeps all of it; with the
+    correlation window the anchor moves the image less towards such a plateau."""
+    from ppmrecon.model.guard import anchor_where_biased
+
+    h = w = 32
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    plateau = (((yy - 16) ** 2 + (xx - 16) ** 2) <= 36).float()      # a disk of radius 6 px
+    anchor = (1e-4 + 1e-2 * plateau).expand(1, 3, h, w).contiguous()
+    var = (1e-4 * plateau + 1e-10)[None, None]                       # the variance of one photon's estimate
+    image = torch.full((1, 3, h, w), 1e-4)
+    plain = anchor_where_biased(image, anchor, var, 1.5, 1.0)
+    shared = anchor_where_biased(image, anchor, var, 1.5, 1.0, window=3.0)
+    centre = (slice(None), slice(None), slice(13, 20), slice(13, 20))
+    assert float(shared[centre].mean()) < 0.8 * float(plain[centre].mean())
+    assert bool((shared >= image - 1e-12).all())
 
 
 def test_anchor_where_biased_acts_only_beyond_the_anchors_noise():

@@ -72,12 +72,14 @@ class ChooserConfig:
         return cls(**dict(data))
 
 
-def band(y: torch.Tensor, z: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def band(y: torch.Tensor, z: torch.Tensor, y_out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The per-channel range of one image's five estimates, ``(lo, hi)``, each like ``y``
-    ((H, W, 3) or (3, H, W)); z holds the four ~z^j along a leading axis ((4, *y.shape))."""
+    ((H, W, 3) or (3, H, W)); z holds the four ~z^j along a leading axis ((4, *y.shape));
+    ``y_out`` (y's shape with one channel) the pixels whose range is the ~z^j's alone (the
+    envelope's lone ~y spikes, :func:`.guide.y_spike_mask`)."""
     from .guard import band_bounds
 
-    lo, hi = band_bounds(y[None], z[None], 1.0)
+    lo, hi = band_bounds(y[None], z[None], 1.0, None if y_out is None else y_out[None])
     return lo[0], hi[0]
 
 

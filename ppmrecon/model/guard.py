@@ -429,22 +429,66 @@ def lowpass_variance(variance: torch.Tensor, sigma: float) -> torch.Tensor:
     return _separable(variance, _gaussian_taps(sigma, variance).square())
 
 
+def noise_correlation(x: torch.Tensor, variance: torch.Tensor, window: float) -> torch.Tensor:
+    """The correlation rho of neighbouring pixels' noise in ``x`` (B, C, H, W), (B, 1, H, W):
+
+        E |x_c - x_{c+1}|^2 = 2 V (1 - rho) + |signal step|^2   =>   rho ~ 1 - G_w * D / (2 G_w * V)
+
+    with D the squared step to the right and down neighbour (mean over C and the two
+    directions), V the per-pixel variance of the mean (B, 1, H, W) and G_w a Gaussian of
+    ``window`` px, clamped to [0, 0.999]. A photon-map estimate's noise is correlated because
+    one photon lands in the kernels of every pixel within its radius (a single photon in a
+    dark region paints a plateau); signal steps only lower rho, towards independent pixels.
+    """
+    step = lambda a, b: (a - b).square().mean(1, keepdim=True)                   # noqa: E731
+    right = F.pad(step(x[..., :, 1:], x[..., :, :-1]), (0, 1, 0, 0), mode="replicate")
+    down = F.pad(step(x[..., 1:, :], x[..., :-1, :]), (0, 0, 0, 1), mode="replicate")
+    d2 = gaussian_lowpass(0.5 * (right + down), window)
+    vbar = gaussian_lowpass(variance, window)
+    rho = 1.0 - d2 / (2.0 * vbar).clamp(min=torch.finfo(vbar.dtype).tiny)
+    return torch.where(vbar > 0, rho, torch.zeros_like(rho)).clamp_(0.0, 0.999)
+
+
+def correlated_lowpass_variance(variance: torch.Tensor, rho: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Variance of ``G_sigma * X`` for noise of local variance V (``variance``, (B, 1, H, W))
+    whose autocorrelation is Gaussian, c(d) = exp(-d^2 / (4 s^2)) with s fitted to the
+    neighbour correlation ``rho`` = c(1) (:func:`noise_correlation`):
+
+        Var = max(s^2 / (s^2 + sigma^2) G_sigma * V,  sum_k g_k^2 V_{c-k})
+
+    (the first term is the integral of G * G, a Gaussian of variance 2 sigma^2, against c;
+    the second, :func:`lowpass_variance`, the independent-pixel limit s -> 0 on the pixel
+    grid). s -> infinity (fully correlated) gives the local V itself: the low-pass then
+    removes none of the noise."""
+    s2 = -0.25 / torch.log(rho.clamp(min=1e-30))          # rho = 0: s^2 = 0, independent pixels
+    shared = s2 / (s2 + sigma * sigma) * gaussian_lowpass(variance, sigma)
+    return torch.maximum(shared, lowpass_variance(variance, sigma))
+
+
 def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_variance: torch.Tensor,
-                        sigma: float, k: float) -> torch.Tensor:
+                        sigma: float, k: float, window: float = 0.0) -> torch.Tensor:
     """The low-frequency anchor applied as far as the gap is larger than the anchor's noise:
 
         yhat' = yhat + a D,   D = G_sigma * (anchor - yhat),   a = |D|^2 / (|D|^2 + k Var(G_sigma * anchor))
 
     with |D|^2 the mean over R, G, B and Var from :func:`lowpass_variance` of the anchor's
-    per-pixel variance of the mean (buffer layer ``V``, (B, 1, H, W)). Where ``yhat``'s low
-    frequencies differ from the anchor's by more than the anchor's own noise (a smooth bias
-    of ``yhat``, e.g. a denoiser darkening a glossy wall) a -> 1, the plain anchor; where the
-    gap is within that noise a -> 0 and ``yhat`` keeps its (lower-variance) low frequencies.
-    a lies in [0, 1] and D -> 0 as the inputs converge, so the correction vanishes.
+    per-pixel variance of the mean (buffer layer ``V``, (B, 1, H, W)), or with ``window``
+    > 0 from :func:`correlated_lowpass_variance`, the anchor's neighbour correlation
+    estimated over a Gaussian window of that width (:func:`noise_correlation`). Where
+    ``yhat``'s low frequencies differ from the anchor's by more than the anchor's own noise
+    (a smooth bias of ``yhat``, e.g. a denoiser darkening a glossy wall) a -> 1, the plain
+    anchor; where the gap is within that noise a -> 0 and ``yhat`` keeps its
+    (lower-variance) low frequencies. a lies in [0, 1] and D -> 0 as the inputs converge,
+    so the correction vanishes whatever the noise estimate.
     """
     gap = gaussian_lowpass(anchor - image, sigma)
     gap2 = gap.square().mean(1, keepdim=True)
-    noise = k * lowpass_variance(anchor_variance, sigma)
+    variance = anchor_variance.clamp(min=0.0)
+    if window > 0:
+        var = correlated_lowpass_variance(variance, noise_correlation(anchor, variance, window), sigma)
+    else:
+        var = lowpass_variance(variance, sigma)
+    noise = k * var
     a = torch.where(gap2 > 0, gap2 / (gap2 + noise).clamp(min=torch.finfo(gap2.dtype).tiny), torch.zeros_like(gap2))
     return image + a * gap
 

@@ -46,6 +46,12 @@ the guide's prior and the shipped network, 0 / 0 images worse than their best in
 (against 2 / 0), 8x8-block ratio 0.95 / 1.23 (against 1.04 / 1.16): the softmax over terms
 near g averages their noise, the clamp returns g wherever the estimates leave it room.
 
+Two robustness rules of the envelope (issue 12, measured on every image of ``data/v3_cpu``
+and the study renders, ``benchmarks/results/guide_spike``): ``y_spike`` leaves ~y out of a
+pixel's range where it is a lone spike (:func:`lone_y_spikes`), and ``anchor_window`` takes
+the neighbour correlation of the anchor's noise into its test
+(:func:`.guard.correlated_lowpass_variance`).
+
 **Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
 envelope and seven other images held in the same range, mixed per pixel by a small trained
 network (:mod:`.chooser`); consistent by the same argument.
@@ -145,6 +151,11 @@ class GuideConfig:
     #: than this factor above every ~z^j of the pixel and above its own 3 x 3 median
     #: (:func:`lone_y_spikes`); 0 = off (checkpoints without the setting read as 0)
     y_spike: float = 0.0
+    #: envelope modes: > 0 estimates the neighbour correlation of the anchor's noise over a
+    #: Gaussian window of this many pixels and takes it into the anchor's noise test
+    #: (:func:`.guard.correlated_lowpass_variance`); 0 = independent pixels (checkpoints
+    #: without the setting read as 0)
+    anchor_window: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -177,6 +188,9 @@ class GuideConfig:
         if isinstance(self.y_spike, bool) or not isinstance(self.y_spike, (int, float)) \
                 or not (self.y_spike == 0 or (math.isfinite(self.y_spike) and self.y_spike > 1)):
             raise ValueError(f"guide setting 'y_spike' must be 0 (off) or a finite factor > 1, got {self.y_spike!r}")
+        if isinstance(self.anchor_window, bool) or not isinstance(self.anchor_window, (int, float)) \
+                or not math.isfinite(self.anchor_window) or self.anchor_window < 0:
+            raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -265,6 +279,18 @@ def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, r
     ylum = y.mean(1, keepdim=True)
     zmax = z.mean(2).amax(1, keepdim=True)
     return (ylum > ratio * (zmax + eps)) & (ylum > ratio * (median3x3(y).mean(1, keepdim=True) + eps))
+
+
+def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: GuardConfig,
+                 scale: torch.Tensor | float) -> torch.Tensor | None:
+    """:func:`lone_y_spikes` with the guide's factor ``cfg.y_spike`` and eps = the guard's
+    floor x ``scale`` (:data:`.guard.RELATIVE_FLOOR` with the guard off); None when the rule
+    is off. y (B, 3, H, W), z (B, 4, 3, H, W); the envelope and the chooser's band share it."""
+    from .guard import RELATIVE_FLOOR
+
+    if not cfg.y_spike:
+        return None
+    return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
 
 
 def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
@@ -364,16 +390,14 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
     itself wherever the pixel's estimates leave room for it.
     """
-    from .guard import RELATIVE_FLOOR, anchor_where_biased, band_bounds
+    from .guard import anchor_where_biased, band_bounds
 
-    spikes = None
-    if cfg.y_spike:
-        eps = (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale
-        spikes = lone_y_spikes(y, z, eps, cfg.y_spike)
+    spikes = y_spike_mask(y, z, cfg, guard, scale)
     lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
-        held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise)
+        held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,
+                                   cfg.anchor_window)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
 

@@ -35,7 +35,7 @@ from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
 from .chooser import Chooser, band, candidates, features
-from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits
+from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits, y_spike_mask
 from .guide import planes as guide_planes_of
 from .kpn import KPN
 
@@ -171,7 +171,7 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
         result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress, scale)
         if chooser is None:
             return result
-        return _choose(buf, result.rgb, images, chooser, scale, device, progress)
+        return _choose(buf, result.rgb, images, chooser, scale, device, progress, guide, guard)
     planes = buffer_guide(buf, guide, guard, scale) if guide.enabled else None
 
     def source(rows: slice, cols: slice) -> ModelInputs:
@@ -207,30 +207,38 @@ def _scale(buf: BufferFile) -> float:
 
 
 def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages,
-                   scale: float | None = None) -> ChooserInputs:
+                   scale: float | None = None, guide: GuideConfig | None = None,
+                   guard: GuardConfig | None = None) -> ChooserInputs:
     """The chooser's features (C, H, W), candidates (K, 3, H, W) and band of a whole (guarded)
     buffer file, its envelope (H, W, 3) and its guide's images (:func:`buffer_guide_images`
     with ``need_y``), ``scale`` its :func:`.guard.image_scale` when the caller has it;
+    ``guide`` and ``guard``: the band leaves out the guide's lone ~y spikes as the envelope
+    does (:func:`.guide.y_spike_mask`; None: the full range);
     training (:mod:`..train.chooser`) and inference share this. Both are
     views of pixel-major memory (the buffer's own layout): the chooser's convolutions run
     channels-last on them without a copy."""
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32))             # (5, H, W, 3)
     y, z = est[0], est[1:]
     hwc = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (envelope_rgb, buf.albedo, buf.normal)]
-    guide = [t.permute(1, 2, 0) for t in (images.guide, images.source, images.y)]
-    lo, hi = band(y, z)
-    cands = candidates(hwc[0], *guide, z, lo, hi)
+    oidn = [t.permute(1, 2, 0) for t in (images.guide, images.source, images.y)]
+    scale = _scale(buf) if scale is None else scale
+    spikes = None
+    if guide is not None and guard is not None:
+        spikes = y_spike_mask(y.permute(2, 0, 1)[None], z.permute(0, 3, 1, 2)[None], guide, guard, scale)
+    lo, hi = band(y, z, None if spikes is None else spikes[0].permute(1, 2, 0))
+    cands = candidates(hwc[0], *oidn, z, lo, hi)
     feats = features(cands, y, lo, hi, torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32)), hwc[1],
-                     hwc[2], _scale(buf) if scale is None else scale, passes_of(buf))
+                     hwc[2], scale, passes_of(buf))
     return ChooserInputs(feats.permute(2, 0, 1), cands.permute(2, 3, 0, 1), lo, hi)
 
 
 def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, chooser: Chooser, scale: float,
-            device: str | torch.device, progress: ProgressFn | None) -> Denoised:
+            device: str | torch.device, progress: ProgressFn | None, guide: GuideConfig,
+            guard: GuardConfig) -> Denoised:
     """The chooser (:mod:`.chooser`) on a whole (guarded) buffer file: no tiles (its
     memory is a few dozen floats per pixel, about 0.7 GB at 1920x1080)."""
     device = torch.device(device)
-    feats, cands, lo, hi = chooser_inputs(buf, envelope_rgb, images, scale)
+    feats, cands, lo, hi = chooser_inputs(buf, envelope_rgb, images, scale, guide, guard)
     image = chooser.to(device).eval().predict(feats[None].to(device), cands[None].to(device))[0].permute(1, 2, 0)
     # a convex combination of band-held candidates is in the band; the clamp removes rounding
     image = torch.clamp(image, lo.to(device), hi.to(device))

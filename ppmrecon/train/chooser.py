@@ -129,7 +129,7 @@ def prepare(data: str | os.PathLike, model, warn: Warn | None = None) -> list[It
             guarded = guard_buffer(buf, model.guard)
             images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
             env = buffer_envelope(guarded, planes, model.guard, guide).rgb
-            feats, cands, _, _ = chooser_inputs(guarded, env, images)
+            feats, cands, _, _ = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
             items.append(Item(f"{scene['id']}/{entry['file']}", scene.get("split", "train"),
                               scene.get("family", "?"), int(entry.get("passes", 0)), feats, cands,
                               torch.from_numpy(np.ascontiguousarray(ref, np.float32)).permute(2, 0, 1),
