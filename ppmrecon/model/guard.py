@@ -440,13 +440,17 @@ def noise_correlation(x: torch.Tensor, variance: torch.Tensor, window: float) ->
     one photon lands in the kernels of every pixel within its radius (a single photon in a
     dark region paints a plateau); signal steps only lower rho, towards independent pixels.
     """
-    step = lambda a, b: (a - b).square().mean(1, keepdim=True)                   # noqa: E731
-    right = F.pad(step(x[..., :, 1:], x[..., :, :-1]), (0, 1, 0, 0), mode="replicate")
-    down = F.pad(step(x[..., 1:, :], x[..., :-1, :]), (0, 0, 0, 1), mode="replicate")
+    right = F.pad(_squared_step(x[..., :, 1:], x[..., :, :-1]), (0, 1, 0, 0), mode="replicate")
+    down = F.pad(_squared_step(x[..., 1:, :], x[..., :-1, :]), (0, 0, 0, 1), mode="replicate")
     d2 = gaussian_lowpass(0.5 * (right + down), window)
     vbar = gaussian_lowpass(variance, window)
     rho = 1.0 - d2 / (2.0 * vbar).clamp(min=torch.finfo(vbar.dtype).tiny)
     return torch.where(vbar > 0, rho, torch.zeros_like(rho)).clamp_(0.0, 0.999)
+
+
+def _squared_step(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|a - b|^2, the mean over channels, (B, 1, H, W)."""
+    return (a - b).square().mean(1, keepdim=True)
 
 
 def correlated_lowpass_variance(variance: torch.Tensor, rho: torch.Tensor, sigma: float) -> torch.Tensor:
