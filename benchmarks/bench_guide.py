@@ -20,6 +20,7 @@ checkpoint that carries a chooser but does not run it by default, with it; ``NAM
 envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R`` = the same with
 ~y left out of the range where it is a lone spike R x above the ~z^j (0 = off); ``NAME anchor_window=W``
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
+``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -70,6 +71,7 @@ ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in th
 Y_SPIKES = (0.0, 4.0, 8.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
 #: the window (px) over which the anchor's noise correlation is estimated (GuideConfig.anchor_window; 0 = off)
 ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
+GUARD_CONFIRMS = (0.0, 2.0, 4.0)   # the guard's confirmation of ~y by a settled ~z^j (GuardConfig.confirm; 0 = off)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -116,6 +118,10 @@ def variants(models: dict) -> dict:
                         g = replace(net.guide, y_spike=spike)
                         out[f"{name} y_spike={spike:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
                             buf, net, guard=guard, guide=g).rgb
+                for confirm in GUARD_CONFIRMS:
+                    if confirm != guard.confirm:
+                        gd = replace(guard, confirm=confirm)
+                        out[f"{name} confirm={confirm:g}"] = lambda buf, net=net, gd=gd: denoise(buf, net, guard=gd).rgb
                 for window in ANCHOR_WINDOWS:
                     if window != net.guide.anchor_window:
                         g = replace(net.guide, anchor_window=window)

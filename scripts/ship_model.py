@@ -55,6 +55,8 @@ def main() -> None:
                          "ship in guide mode 'chooser'")
     ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
                     help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
+    ap.add_argument("--guard-confirm", type=float, default=None, metavar="C",
+                    help="ship with the guard's confirmation by hit point B at factor C (GuardConfig.confirm; 0 = off)")
     ap.add_argument("--guide-anchor-window", type=float, default=None, metavar="W",
                     help="ship with the anchor's noise correlation estimated over a W px window "
                          "(GuideConfig.anchor_window; 0 = independent pixels)")
@@ -205,6 +207,7 @@ def command_flags(args: argparse.Namespace) -> str:
             + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
             + (f" --guide-y-spike {args.guide_y_spike:g}" if args.guide_y_spike is not None else "")
             + (f" --guide-anchor-window {args.guide_anchor_window:g}" if args.guide_anchor_window is not None else "")
+            + (f" --guard-confirm {args.guard_confirm:g}" if args.guard_confirm is not None else "")
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
@@ -274,12 +277,20 @@ def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
     if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None \
-            and args.guide_y_spike is None and args.guide_anchor_window is None and args.chooser is None:
+            and args.guide_y_spike is None and args.guide_anchor_window is None and args.guard_confirm is None \
+            and args.chooser is None:
         sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-weight, "
-                 "--guide-cross, --guide-y-spike, --guide-anchor-window, --chooser)")
+                 "--guide-cross, --guide-y-spike, --guide-anchor-window, --guard-confirm, --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
-    before = ckpt.model.guide
+    before, guard_before = ckpt.model.guide, ckpt.model.guard
     meta = dict(ckpt.meta)
+    if args.guard_confirm is not None:
+        if not guard_before.enabled:
+            sys.exit(f"ship_model: --guard-confirm: {DEFAULT_MODEL} runs without the guard")
+        try:
+            ckpt.model.guard = replace(guard_before, confirm=args.guard_confirm)
+        except ValueError as exc:
+            sys.exit(f"ship_model: --guard-confirm: {exc}")
     if args.chooser is not None:
         trained = load_checkpoint(args.chooser)
         if trained.model.chooser is None:
@@ -296,13 +307,18 @@ def reship(args: argparse.Namespace) -> None:
     history = list(meta.get("reshipped", []))
     if ckpt.model.guide != before:
         history.append({"from": before.to_dict(), "to": ckpt.model.guide.to_dict()})
+    if ckpt.model.guard != guard_before:
+        history.append({"guard_from": guard_before.to_dict(), "guard_to": ckpt.model.guard.to_dict()})
     out, skipping = [], False
     for line in card:
         if line.startswith("The model `ppmrecon-denoise` uses"):
             line = line.split(" Re-shipped by ", 1)[0] + (f" Re-shipped by `scripts/ship_model.py{command_flags(args)}` "
-                                                        "with changed guide settings (same weights).")
+                                                        "with changed guide or guard settings (same weights).")
         elif line.startswith("| shipped reconstruction |") or line.startswith("| chooser |"):
             continue
+        elif line.startswith("| firefly guard |") and ckpt.model.guard != guard_before:
+            line = (f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; trained with "
+                    f"{guard_before.to_dict()}, the same but for the settings changed at reshipping) |")
         elif line.startswith("| data set |"):
             out += shipped_row(ckpt.model.guide) + chooser_row(ckpt.model, meta)
         elif line.startswith("Held-out figures from") and args.bench:
@@ -316,7 +332,8 @@ def reship(args: argparse.Namespace) -> None:
             out.append(line)
     save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "reshipped": history})
     write_text(card_path, "\n".join(out) + "\n")
-    print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}")
+    print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}"
+          + (f"; guard {guard_before.to_dict()} -> {ckpt.model.guard.to_dict()}" if ckpt.model.guard != guard_before else ""))
 
 
 if __name__ == "__main__":

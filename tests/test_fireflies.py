@@ -391,6 +391,42 @@ def test_guard_config_validation():
         with pytest.raises(ValueError):
             GuardConfig(**bad)
     assert GuardConfig.from_dict(DEFAULT_ON.to_dict()) == DEFAULT_ON
+    for bad in (1.0, 0.5, -4.0, float("nan")):
+        with pytest.raises(ValueError, match="confirm"):
+            GuardConfig(enabled=True, confirm=bad)
+    assert GuardConfig.from_dict({"enabled": True}).confirm == 0
+
+
+def test_a_y_value_that_hit_point_b_saw_over_many_passes_is_no_outlier():
+    """``GuardConfig.confirm`` (issue 12, ``0021_caustic_paths``): ~y far above its 3 x 3
+    median with few passes behind it is an outlier, unless a ~z^j of the same pixel is
+    settled (relative error below r0) and within the factor of it: a small emitter both
+    hit points see. The issue's shared-photon firefly (one pass, in all five) and a ~y
+    spike over an unsettled or dark ~z^j are still caught."""
+    buf, _ = synthetic()
+    mean = float(buf.estimates.mean())
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    (r1, c1), (r2, c2), (r3, c3) = FIREFLIES[:3]
+    for r, c in FIREFLIES[:3]:                     # ~y: a single-pass spike at three pixels
+        est[0, r, c] += 1e3 * mean
+        var[0, r, c] += (1e3 * mean) ** 2
+    est[1:, r1, c1] = 400 * mean                   # the ~z^j saw it over many passes: settled
+    var[1:, r1, c1] = (0.05 * 400 * mean) ** 2
+    est[1:, r2, c2] = 400 * mean                   # as bright, but one pass: unsettled
+    var[1:, r2, c2] = (400 * mean) ** 2
+    # (r3, c3): the ~z^j stay dark
+    t = lambda a: torch.from_numpy(a)[None]        # noqa: E731
+    passes = torch.tensor([float(PASSES)])
+    plain = find_outliers(t(est).permute(0, 1, 4, 2, 3), t(var), passes, DEFAULT_ON)[0, 0]
+    confirm = find_outliers(t(est).permute(0, 1, 4, 2, 3), t(var), passes, replace(DEFAULT_ON, confirm=4.0))[0, 0]
+    assert bool(plain[r1, c1]) and bool(plain[r2, c2]) and bool(plain[r3, c3])
+    assert not bool(confirm[r1, c1]) and bool(confirm[r2, c2]) and bool(confirm[r3, c3])
+    assert torch.equal(confirm.sum(), plain.sum() - 1)
+    shared = with_fireflies(buf, 1e3, "both")      # one photon in both gathers: every estimate unsettled
+    est_s = torch.from_numpy(shared.estimates).permute(0, 3, 1, 2)[None]
+    out = find_outliers(est_s, torch.from_numpy(shared.variances)[None], passes, replace(DEFAULT_ON, confirm=4.0))
+    for r, c in FIREFLIES:
+        assert bool(out[0, :, r, c].all())
 
 
 # -------------------------------------------------------------------- checkpoints

@@ -25,6 +25,7 @@ The model `ppmrecon-denoise` uses when `--model` is not given. Written by `scrip
 
 | | |
 |---|---|
+| firefly guard | the guard it was trained with |
 | denoiser guide | trained with it |
 | shipped reconstruction | the old row |
 | data set | `data/x`: 2 scenes |
@@ -112,6 +113,14 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     assert "where ~y is a lone spike, 16x above them" in (tmp_path / "default.md").read_text()
     with pytest.raises(SystemExit, match="--guide-y-spike"):
         _run(ship_model, monkeypatch, "--guide-y-spike", "0.5")
+    _run(ship_model, monkeypatch, "--guard-confirm", "4")
+    confirmed = C.load_checkpoint(tmp_path / "default.pt")
+    assert confirmed.model.guard == replace(spiked.model.guard, confirm=4.0)
+    assert confirmed.model.guide == spiked.model.guide
+    assert {"guard_from", "guard_to"} <= set(confirmed.meta["reshipped"][-1])
+    assert "'confirm': 4.0" in (tmp_path / "default.md").read_text()
+    with pytest.raises(SystemExit, match="--guard-confirm"):
+        _run(ship_model, monkeypatch, "--guard-confirm", "1")
 
 
 def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path, monkeypatch):

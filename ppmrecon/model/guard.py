@@ -218,11 +218,15 @@ class GuardConfig:
     band: float = 1.0             # h >= 1: output within [min_k Xhat / h, max_k Xhat * h]; 0 = no band
     floor: float = RELATIVE_FLOOR  # eps = floor x image_scale
     anchor: float = 1.5           # sigma (px) of the low-frequency anchor to ~z^4; 0 = off
+    #: c > 1: a ~y pixel is no outlier where a ~z^j of the same pixel is settled (its
+    #: sqrt(V)/Xbar below r0: many passes saw it) and at least 1/c of ~y (:func:`confirmed`);
+    #: 0 = off (checkpoints without the setting read as 0)
+    confirm: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise ValueError(f"guard setting 'enabled' must be true or false, got {self.enabled!r}")
-        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor"):
+        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor", "confirm"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"guard setting '{key}' must be a finite number, got {value!r}")
@@ -233,6 +237,8 @@ class GuardConfig:
             raise ValueError(f"guard setting 'band' must be 0 (off) or >= 1, got {self.band}")
         if self.anchor < 0:
             raise ValueError(f"guard setting 'anchor' must be 0 (off) or a blur width > 0 in pixels, got {self.anchor}")
+        if self.confirm != 0 and self.confirm <= 1:
+            raise ValueError(f"guard setting 'confirm' must be 0 (off) or a factor > 1, got {self.confirm}")
 
     def factor(self, passes: torch.Tensor) -> torch.Tensor:
         """g(N) = threshold * N^growth for pass counts (B,)."""
@@ -281,7 +287,27 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
     if idx[0].numel():
         med = _window_median(lum.unsqueeze(2), idx).squeeze(1)
         mask[idx] = lum[idx] > g.view(b)[idx[0]] * (med + eps.view(b)[idx[0]])
+    if cfg.confirm:
+        mask[:, 0] &= ~confirmed(lum, variances, cfg)
     return mask
+
+
+def confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:
+    """Where hit point B confirms ~y, (B, H, W) bool: some ~z^j of the same pixel is settled,
+    sqrt(V)/Xbar < r0 (a mean made by many comparable passes, not one lucky one), and at
+    least 1/``cfg.confirm`` of ~y's value. ``lum`` (B, 5, H, W) the estimates' RGB means.
+
+    ~y and the ~z^j are gathered at independent eye hit points A and B; a small emitter or
+    a one-pixel caustic that both see over many passes is light, not a firefly, even when
+    ~y's own mean still rests on a few passes (``0021_caustic_paths``, N = 16: an emitter
+    pixel with ~y 32 and every ~z^j 75, reference 53, went to 0.04, and the guide's B-only
+    spike rule then took ~z^4's value out of the guide too). A photon that both gathers
+    shared in one pass (the issue's box firefly) leaves every estimate unsettled and is
+    still caught. Not replacing a pixel costs no consistency.
+    """
+    z = lum[:, 1:]
+    settled = variances[:, 1:].clamp(min=0).sqrt() < cfg.min_rel_error * z
+    return (settled & (cfg.confirm * z >= lum[:, :1])).any(1)
 
 
 def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
