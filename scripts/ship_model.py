@@ -37,6 +37,24 @@ from ppmrecon.model.guide import ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noq
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
+#: The numeric settings a reship may change: (option, metavar, help).
+RESHIP_NUMBERS = (
+    ("--guide-y-weight", "F", "ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)"),
+    ("--guide-cross", "C", "ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)"),
+    ("--guide-y-spike", "R", "ship with ~y left out of the envelope's range where it is a lone spike R x above "
+                             "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)"),
+    ("--guide-anchor-window", "W", "ship with the anchor's noise correlation estimated over a W px window "
+                                   "(GuideConfig.anchor_window; 0 = independent pixels)"),
+    ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
+                             "(GuardConfig.confirm; 0 = off)"),
+)
+
+
+def _dest(flag: str) -> str:
+    """argparse's attribute name of an option: --guide-y-weight -> guide_y_weight."""
+    return flag[2:].replace("-", "_")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run", type=Path, nargs="?", default=None,
@@ -48,21 +66,11 @@ def main() -> None:
                          "should come from held-out figures: give them with --bench")
     ap.add_argument("--bench", type=Path, default=None,
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
-    ap.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
-                    help="ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)")
     ap.add_argument("--chooser", type=Path, default=None, metavar="CKPT",
                     help="attach the chooser of this `ppmrecon-train chooser` result (its chooser.pt) and "
                          "ship in guide mode 'chooser'")
-    ap.add_argument("--guide-cross", type=float, default=None, metavar="C",
-                    help="ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)")
-    ap.add_argument("--guard-confirm", type=float, default=None, metavar="C",
-                    help="ship with the guard's confirmation by hit point B at factor C (GuardConfig.confirm; 0 = off)")
-    ap.add_argument("--guide-anchor-window", type=float, default=None, metavar="W",
-                    help="ship with the anchor's noise correlation estimated over a W px window "
-                         "(GuideConfig.anchor_window; 0 = independent pixels)")
-    ap.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
-                    help="ship with ~y left out of the envelope's range where it is a lone spike R x above "
-                         "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)")
+    for flag, metavar, text in RESHIP_NUMBERS:
+        ap.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
     args = ap.parse_args()
     if args.run is None:
         reship(args)
@@ -202,12 +210,9 @@ def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
 
 def command_flags(args: argparse.Namespace) -> str:
     """The guide and bench flags of this command, as the card quotes them."""
-    return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
-            + (f" --guide-y-weight {args.guide_y_weight:g}" if args.guide_y_weight is not None else "")
-            + (f" --guide-cross {args.guide_cross:g}" if args.guide_cross is not None else "")
-            + (f" --guide-y-spike {args.guide_y_spike:g}" if args.guide_y_spike is not None else "")
-            + (f" --guide-anchor-window {args.guide_anchor_window:g}" if args.guide_anchor_window is not None else "")
-            + (f" --guard-confirm {args.guard_confirm:g}" if args.guard_confirm is not None else "")
+    numbers = "".join(f" {flag} {getattr(args, _dest(flag)):g}" for flag, _, _ in RESHIP_NUMBERS
+                      if getattr(args, _dest(flag)) is not None)
+    return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "") + numbers
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + (f" --bench {args.bench}" if args.bench else ""))
 
@@ -276,11 +281,10 @@ def bench_lines(path: Path) -> list[str]:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.guide_y_weight is None and args.guide_cross is None \
-            and args.guide_y_spike is None and args.guide_anchor_window is None and args.guard_confirm is None \
-            and args.chooser is None:
-        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-y-weight, "
-                 "--guide-cross, --guide-y-spike, --guide-anchor-window, --guard-confirm, --chooser)")
+    if args.guide_mode is None and args.chooser is None \
+            and all(getattr(args, _dest(flag)) is None for flag, _, _ in RESHIP_NUMBERS):
+        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, "
+                 + ", ".join(flag for flag, _, _ in RESHIP_NUMBERS) + ", --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before, guard_before = ckpt.model.guide, ckpt.model.guard
     meta = dict(ckpt.meta)
