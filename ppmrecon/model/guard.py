@@ -22,6 +22,9 @@ What the guard does
    medians in that estimate. The variance test keeps genuinely bright, steady pixels
    (a small light seen directly): a mean made by one pass has sqrt(V)/Xbar ~ 1, one made
    by k comparable passes ~ 1/sqrt(k), a steady pixel after N passes ~ 1/sqrt(N).
+   With ``confirm`` c > 1 a pixel of ~y is also kept where a ~z^j of the same pixel
+   (the independent hit point B) is settled, ``sqrt(V)/Xbar < r0``, and ``>= ~y / c``
+   (:func:`confirmed`): a small light both hit points see.
 2. **Low-frequency anchor**: Eq. 6 takes its low frequencies from ~y. Every term is
    ``~y_i + (~z^j_c - ~z^j_i)``; the bracket is a high-pass of ~z^j over the K x K window,
    so below the window's frequency (K = 5 in the tiny preset) the output is a weighted
