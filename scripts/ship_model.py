@@ -337,7 +337,8 @@ def reship(args: argparse.Namespace) -> None:
     save_checkpoint(DEFAULT_MODEL, ckpt.model, {**meta, "reshipped": history})
     write_text(card_path, "\n".join(out) + "\n")
     print(f"re-shipped {DEFAULT_MODEL}: guide {before.to_dict()} -> {ckpt.model.guide.to_dict()}"
-          + (f"; guard {guard_before.to_dict()} -> {ckpt.model.guard.to_dict()}" if ckpt.model.guard != guard_before else ""))
+          + (f"; guard {guard_before.to_dict()} -> {ckpt.model.guard.to_dict()}"
+             if ckpt.model.guard != guard_before else ""))
 
 
 if __name__ == "__main__":

@@ -330,7 +330,8 @@ def _guide_header(guide: GuideConfig) -> str:
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode in ENVELOPE_MODES
            else f"beta={guide.beta:g}")
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
-    return f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} y={guide.y_weight:g}{spike}"
+    return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
+            f"y={guide.y_weight:g}{spike}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -390,8 +390,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     (0: no anchor), k = ``cfg.anchor_noise``; the range widened by the guard's band h when
     h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
-    a float or (B, 1, 1, 1)). Consistent: the five estimates of pixel c converge to its truth x_c, so does
-    anything clamped between them (the guard's output band), and the anchor's correction
+    a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
+    correlation of ~z^m's noise between neighbours. Consistent: the five estimates of pixel
+    c converge to its truth x_c, so does anything clamped between them (the guard's output band), and the anchor's correction
     vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
     Why it can beat Eq. 6 with the same guide: the softmax over the 4 K^2 terms near g
