@@ -112,32 +112,23 @@ def variants(models: dict) -> dict:
                 g = net.guide.in_mode("chooser")
                 out[f"{name} chooser"] = lambda buf, net=net, guard=guard, g=g: denoise(
                     buf, net, guard=guard, guide=g).rgb
-            if net.guide.mode in ENVELOPE_MODES:
-                for spike in Y_SPIKES:
-                    if spike != net.guide.y_spike:
-                        g = replace(net.guide, y_spike=spike)
-                        out[f"{name} y_spike={spike:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
-                            buf, net, guard=guard, guide=g).rgb
-                for confirm in GUARD_CONFIRMS:
-                    if confirm != guard.confirm:
-                        gd = replace(guard, confirm=confirm)
-                        out[f"{name} confirm={confirm:g}"] = lambda buf, net=net, gd=gd: denoise(buf, net, guard=gd).rgb
-                for window in ANCHOR_WINDOWS:
-                    if window != net.guide.anchor_window:
-                        g = replace(net.guide, anchor_window=window)
-                        out[f"{name} anchor_window={window:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
-                            buf, net, guard=guard, guide=g).rgb
-            if net.guide.mode in ENVELOPE_MODES and net.guide.source:
-                for cross in (0.0, 2.0, 4.0):
-                    if cross != net.guide.cross:
-                        g = replace(net.guide, cross=cross)
-                        out[f"{name} cross={cross:g}"] = lambda buf, net=net, guard=guard, g=g: denoise(
-                            buf, net, guard=guard, guide=g).rgb
-            for quality in OIDN_QUALITIES:
-                if quality != net.guide.quality:
-                    g = replace(net.guide, quality=quality)
-                    out[f"{name} oidn={quality}"] = lambda buf, net=net, guard=guard, g=g: denoise(
-                        buf, net, guard=guard, guide=g).rgb
+            # one checkpoint setting changed at a time: (label, config, key, values, when)
+            sweeps = (("y_spike", "guide", "y_spike", Y_SPIKES, net.guide.mode in ENVELOPE_MODES),
+                      ("confirm", "guard", "confirm", GUARD_CONFIRMS, net.guide.mode in ENVELOPE_MODES),
+                      ("anchor_window", "guide", "anchor_window", ANCHOR_WINDOWS, net.guide.mode in ENVELOPE_MODES),
+                      ("cross", "guide", "cross", (0.0, 2.0, 4.0),
+                       net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
+                      ("oidn", "guide", "quality", OIDN_QUALITIES, True))
+            for label, which, key, values, when in sweeps:
+                base = net.guide if which == "guide" else guard
+                for value in values if when else ():
+                    if value == getattr(base, key):
+                        continue
+                    cfg = replace(base, **{key: value})
+                    g, gd = (cfg, guard) if which == "guide" else (net.guide, cfg)
+                    shown = value if isinstance(value, str) else f"{value:g}"
+                    out[f"{name} {label}={shown}"] = lambda buf, net=net, g=g, gd=gd: denoise(
+                        buf, net, guard=gd, guide=g).rgb
         out[f"{name} noanchor"] = lambda buf, net=net, guard=guard: denoise(buf, net, guard=replace(guard, anchor=0)).rgb
     alone = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, DEFAULT_GUIDE)
     for beta in BETAS:

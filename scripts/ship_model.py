@@ -37,17 +37,36 @@ from ppmrecon.model.guide import ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noq
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
-#: The numeric settings a reship may change: (option, metavar, help).
+#: The numeric settings a reship may change: (option, metavar, help, config ("guide" or
+#: "guard"), that config's key).
 RESHIP_NUMBERS = (
-    ("--guide-y-weight", "F", "ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)"),
-    ("--guide-cross", "C", "ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)"),
+    ("--guide-y-weight", "F", "ship with this weight of OIDN's image of ~y in the guide (GuideConfig.y_weight)",
+     "guide", "y_weight"),
+    ("--guide-cross", "C", "ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)", "guide", "cross"),
     ("--guide-y-spike", "R", "ship with ~y left out of the envelope's range where it is a lone spike R x above "
-                             "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)"),
+                             "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)", "guide", "y_spike"),
     ("--guide-anchor-window", "W", "ship with the anchor's noise correlation estimated over a W px window "
-                                   "(GuideConfig.anchor_window; 0 = independent pixels)"),
+                                   "(GuideConfig.anchor_window; 0 = independent pixels)", "guide", "anchor_window"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
-                             "(GuardConfig.confirm; 0 = off)"),
+                             "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
 )
+
+
+def reship_values(args: argparse.Namespace, config: str) -> list[tuple[str, float, str]]:
+    """(key, value, option) of the numeric settings this command changes in ``config``."""
+    return [(key, getattr(args, _dest(flag)), flag) for flag, _, _, cfg, key in RESHIP_NUMBERS
+            if cfg == config and getattr(args, _dest(flag)) is not None]
+
+
+def changed(cfg, values: list[tuple[str, float, str]]):
+    """``cfg`` (a guide or guard config) with ``values`` (:func:`reship_values`); a value the
+    config refuses is one line naming the option."""
+    for key, value, option in values:
+        try:
+            cfg = replace(cfg, **{key: value})
+        except ValueError as exc:
+            sys.exit(f"ship_model: {option}: {exc}")
+    return cfg
 
 
 def _dest(flag: str) -> str:
@@ -69,12 +88,15 @@ def main() -> None:
     ap.add_argument("--chooser", type=Path, default=None, metavar="CKPT",
                     help="attach the chooser of this `ppmrecon-train chooser` result (its chooser.pt) and "
                          "ship in guide mode 'chooser'")
-    for flag, metavar, text in RESHIP_NUMBERS:
+    for flag, metavar, text, _, _ in RESHIP_NUMBERS:
         ap.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
     args = ap.parse_args()
     if args.run is None:
         reship(args)
         return
+    if reship_values(args, "guard"):
+        sys.exit(f"ship_model: {reship_values(args, 'guard')[0][2]} changes a shipped default: ship {args.run} "
+                 "first, then re-ship with it (no run folder)")
     ckpt_path = args.run / args.checkpoint
     ckpt = load_checkpoint(ckpt_path)
     history = json.loads((args.run / "history.json").read_text())
@@ -188,29 +210,21 @@ def main() -> None:
 
 def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
                   mode: str | None = None) -> GuideConfig:
-    """``guide`` with the settings the command line changes (mode, y_weight, cross, y_spike,
-    anchor_window);
-    ``mode``: the mode when --guide-mode does not give one."""
+    """``guide`` with the settings the command line changes (the mode and the guide's
+    numeric settings of :data:`RESHIP_NUMBERS`); ``mode``: the mode when --guide-mode does
+    not give one."""
     mode = args.guide_mode or mode
-    values = (("y_weight", args.guide_y_weight, "--guide-y-weight"), ("cross", args.guide_cross, "--guide-cross"),
-              ("y_spike", args.guide_y_spike, "--guide-y-spike"),
-              ("anchor_window", args.guide_anchor_window, "--guide-anchor-window"))
-    if (mode or any(v is not None for _, v, _ in values)) and not guide.enabled:
+    values = reship_values(args, "guide")
+    if (mode or values) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if mode and mode != guide.mode:
         guide = guide.in_mode(mode)
-    for key, value, option in values:
-        if value is not None:
-            try:
-                guide = replace(guide, **{key: value})
-            except ValueError as exc:
-                sys.exit(f"ship_model: {option}: {exc}")
-    return guide
+    return changed(guide, values)
 
 
 def command_flags(args: argparse.Namespace) -> str:
     """The guide and bench flags of this command, as the card quotes them."""
-    numbers = "".join(f" {flag} {getattr(args, _dest(flag)):g}" for flag, _, _ in RESHIP_NUMBERS
+    numbers = "".join(f" {flag} {getattr(args, _dest(flag)):g}" for flag, *_ in RESHIP_NUMBERS
                       if getattr(args, _dest(flag)) is not None)
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "") + numbers
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
@@ -282,19 +296,16 @@ def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
     if args.guide_mode is None and args.chooser is None \
-            and all(getattr(args, _dest(flag)) is None for flag, _, _ in RESHIP_NUMBERS):
+            and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
         sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, "
-                 + ", ".join(flag for flag, _, _ in RESHIP_NUMBERS) + ", --chooser)")
+                 + ", ".join(flag for flag, *_ in RESHIP_NUMBERS) + ", --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before, guard_before = ckpt.model.guide, ckpt.model.guard
     meta = dict(ckpt.meta)
-    if args.guard_confirm is not None:
-        if not guard_before.enabled:
-            sys.exit(f"ship_model: --guard-confirm: {DEFAULT_MODEL} runs without the guard")
-        try:
-            ckpt.model.guard = replace(guard_before, confirm=args.guard_confirm)
-        except ValueError as exc:
-            sys.exit(f"ship_model: --guard-confirm: {exc}")
+    guard_values = reship_values(args, "guard")
+    if guard_values and not guard_before.enabled:
+        sys.exit(f"ship_model: {guard_values[0][2]}: {DEFAULT_MODEL} runs without the guard")
+    ckpt.model.guard = changed(guard_before, guard_values)
     if args.chooser is not None:
         trained = load_checkpoint(args.chooser)
         if trained.model.chooser is None:

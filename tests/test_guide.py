@@ -303,7 +303,7 @@ def test_envelope_returns_the_estimates_when_they_agree():
     np.testing.assert_array_equal(denoise(buf, model).rgb, same[0])
 
 
-def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood():
+def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood(monkeypatch):
     """A ~y pixel far above the ~z^j of its pixel and its own 3 x 3 median is a lone spike;
     one the ~z^j share (a real bright feature), or one in a bright ~y neighbourhood (a
     caustic only the narrowest gather resolves) is not; the test is per pixel, not per N."""
@@ -320,6 +320,11 @@ def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood():
     assert bool(spikes[2, 2]) and not bool(spikes[6, 6]) and not bool(spikes[6, 2])
     assert int(spikes[:4].sum()) == 1                      # nothing else near the lone spike
     assert not lone_y_spikes(y, z, 1e-3, 1e3)[0, 0].any()   # 500x is below a factor of 1000
+    import ppmrecon.model.guide as guide_module
+
+    for dense in (0.0, 1.0):                               # the whole image's medians, or the candidates' only
+        monkeypatch.setattr(guide_module, "DENSE_SPIKES", dense)
+        assert torch.equal(lone_y_spikes(y, z, 1e-3, 16.0)[0, 0], spikes)
 
 
 def test_envelope_keeps_a_lone_y_spike_out_of_the_output():

@@ -121,6 +121,8 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     assert "'confirm': 4.0" in (tmp_path / "default.md").read_text()
     with pytest.raises(SystemExit, match="--guard-confirm"):
         _run(ship_model, monkeypatch, "--guard-confirm", "1")
+    with pytest.raises(SystemExit, match="--guard-confirm changes a shipped default"):
+        _run(ship_model, monkeypatch, str(tmp_path / "run"), "--guard-confirm", "4")
 
 
 def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path, monkeypatch):

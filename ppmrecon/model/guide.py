@@ -107,8 +107,8 @@ ENVELOPE_MODES = ("envelope", "chooser")
 SPIKE_RATIO = 4.0
 #: Width (pixels) of the Gaussian that averages the variances in :func:`y_share`.
 Y_WEIGHT_SIGMA = 2.0
-#: :func:`despike` computes the 3 x 3 medians of the whole image when more than this
-#: fraction of its pixels are candidates (above ~y's level), else at the candidates only.
+#: :func:`candidate_medians` (the spike tests) computes the 3 x 3 medians of the whole image
+#: when more than this fraction of its pixels are candidates, else at the candidates only.
 DENSE_SPIKES = 0.05
 
 
@@ -243,21 +243,26 @@ def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SP
     pixel, and the guide would then pick the spike. Spikes are replaced by the source's
     3 x 3 median. Only the weights depend on the guide, so this costs no consistency.
     """
-    from .guard import median3x3, median3x3_at
-
     lum, ylum = source.mean(0), y.mean(0)
     ymax = torch.nn.functional.max_pool2d(ylum[None, None], 3, 1, 1)[0, 0]
-    candidate = lum > ratio * (ymax + eps)
-    rows, cols = candidate.nonzero(as_tuple=True)
-    if len(rows) > DENSE_SPIKES * lum.numel():
-        med = median3x3(source)
-        spike = candidate & (lum > ratio * (med.mean(0) + eps))
-        return torch.where(spike, med, source)
-    med = median3x3_at(source, rows, cols)          # few candidates (the usual case): (3, n)
+    rows, cols, med = candidate_medians(source, lum > ratio * (ymax + eps))
     spike = lum[rows, cols] > ratio * (med.mean(0) + eps)
     out = source.clone()
     out[:, rows[spike], cols[spike]] = med[:, spike]
     return out
+
+
+def candidate_medians(x: torch.Tensor, candidate: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The 3 x 3 medians of x (C, H, W) at the ``candidate`` pixels (H, W) bool: rows, cols
+    and the medians (C, n). At the candidates only when they are few (the usual case: a
+    whole-image median costs about 60 ms at 1280 x 720), from the whole image's median when
+    more than :data:`DENSE_SPIKES` of the pixels are candidates; the two agree exactly."""
+    from .guard import median3x3, median3x3_at
+
+    rows, cols = candidate.nonzero(as_tuple=True)
+    if len(rows) > DENSE_SPIKES * candidate.numel():
+        return rows, cols, median3x3(x)[:, rows, cols]
+    return rows, cols, median3x3_at(x, rows, cols)
 
 
 def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:
@@ -274,18 +279,12 @@ def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, r
     the range there costs no consistency, as the ~z^j alone converge to the truth; and as
     the test compares ~y with the ~z^j of the same pixel it does not loosen with N.
     """
-    from .guard import median3x3_at
-
     ylum = y.mean(1, keepdim=True)
     eps = torch.as_tensor(eps, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1).expand(y.shape[0], 1, 1, 1)
     spikes = ylum > ratio * (z.mean(2).amax(1, keepdim=True) + eps)
-    # the 3 x 3 medians only at the candidates, which are few (a whole-image median costs
-    # about 60 ms at 1280 x 720)
-    for b in range(y.shape[0]):
-        rows, cols = spikes[b, 0].nonzero(as_tuple=True)
-        if len(rows):
-            med = median3x3_at(y[b], rows, cols).mean(0)                       # (n,)
-            spikes[b, 0, rows, cols] = ylum[b, 0, rows, cols] > ratio * (med + eps[b, 0, 0, 0])
+    for b in range(y.shape[0]):                     # images of a batch (one at inference)
+        rows, cols, med = candidate_medians(y[b], spikes[b, 0])
+        spikes[b, 0, rows, cols] = ylum[b, 0, rows, cols] > ratio * (med.mean(0) + eps[b, 0, 0, 0])
     return spikes
 
 
