@@ -156,6 +156,12 @@ class GuideConfig:
     #: (:func:`.guard.correlated_lowpass_variance`); 0 = independent pixels (checkpoints
     #: without the setting read as 0)
     anchor_window: float = 0.0
+    #: envelope modes: > 0 widens each pixel's range to the union of its five estimates'
+    #: intervals ``X_k +- kappa sqrt(V_k)``, V_k the estimate's variance of the mean
+    #: (:func:`band_spread`): the truth lies outside the bare range of five estimates
+    #: whenever they all erred the same way, which the clamp then cannot undo; 0 = the
+    #: bare range (checkpoints without the setting read as 0)
+    band_sigma: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -191,6 +197,9 @@ class GuideConfig:
         if isinstance(self.anchor_window, bool) or not isinstance(self.anchor_window, (int, float)) \
                 or not math.isfinite(self.anchor_window) or self.anchor_window < 0:
             raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
+        if isinstance(self.band_sigma, bool) or not isinstance(self.band_sigma, (int, float)) \
+                or not math.isfinite(self.band_sigma) or self.band_sigma < 0:
+            raise ValueError(f"guide setting 'band_sigma' must be a number >= 0, got {self.band_sigma!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -375,8 +384,17 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     return planes(g, cfg, scale, floor)
 
 
+def band_spread(variances: torch.Tensor, kappa: float) -> torch.Tensor:
+    """Half-widths ``kappa sqrt(V_k)`` of the five estimates' intervals, (B, 5, 1, H, W), from
+    their variances of the mean ``variances`` (B, 5, H, W) (the buffer's ``V``, the mean over
+    R, G, B, so one width serves the three channels). V_k -> 0 with N, so the widened range
+    still closes on the truth."""
+    return (kappa * variances.clamp(min=0.0).sqrt()).unsqueeze(2)
+
+
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
-             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0) -> torch.Tensor:
+             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
+             variances: torch.Tensor | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -390,7 +408,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
-    correlation of ~z^m's noise between neighbours. Consistent: the five estimates of pixel
+    correlation of ~z^m's noise between neighbours; with ``cfg.band_sigma`` kappa the range
+    is the union of the intervals ``X_k +- kappa sqrt(V_k)`` (:func:`band_spread`; ``variances``
+    (B, 5, H, W), the five variances of the mean, are then needed). Consistent: the five estimates of pixel
     c converge to its truth x_c, so does anything clamped between them (the guard's output band), and the anchor's correction
     vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
@@ -401,7 +421,12 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     from .guard import anchor_where_biased, band_bounds
 
     spikes = y_spike_mask(y, z, cfg, guard, scale)
-    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
+    spread = None
+    if cfg.band_sigma:
+        if variances is None:
+            raise ValueError("envelope: the guide's band_sigma needs the inputs' variances")
+        spread = band_spread(variances, cfg.band_sigma)
+    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes, spread)
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,
