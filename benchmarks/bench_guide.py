@@ -22,6 +22,8 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
 ``NAME band_sigma=K`` = the same with each pixel's range widened to its estimates' intervals X +- K sqrt(V) (0 = off);
+``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
+``NAME anchor_settled=1`` / ``=0`` = the same with the anchor's low-pass over ~z^m's settled pixels only, or over all;
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -75,6 +77,8 @@ ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
 GUARD_CONFIRMS = (0.0, 2.0, 4.0)   # the guard's confirmation of ~y by a settled ~z^j (GuardConfig.confirm; 0 = off)
 #: the envelope's range widened by kappa standard errors of each estimate (GuideConfig.band_sigma; 0 = off)
 BAND_SIGMAS = (0.0, 0.5, 1.0, 2.0, 3.0)
+#: the anchor's noise multiple k (GuideConfig.anchor_noise; larger: the anchor acts on larger gaps only)
+ANCHOR_NOISES = (0.5, 1.0, 2.0, 4.0, 8.0)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -120,6 +124,8 @@ def variants(models: dict) -> dict:
                       ("confirm", "guard", "confirm", GUARD_CONFIRMS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_window", "guide", "anchor_window", ANCHOR_WINDOWS, net.guide.mode in ENVELOPE_MODES),
                       ("band_sigma", "guide", "band_sigma", BAND_SIGMAS, net.guide.mode in ENVELOPE_MODES),
+                      ("anchor_noise", "guide", "anchor_noise", ANCHOR_NOISES, net.guide.mode in ENVELOPE_MODES),
+                      ("anchor_settled", "guide", "anchor_settled", (False, True), net.guide.mode in ENVELOPE_MODES),
                       ("cross", "guide", "cross", (0.0, 2.0, 4.0),
                        net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
                       ("oidn", "guide", "quality", OIDN_QUALITIES, True))

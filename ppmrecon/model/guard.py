@@ -309,8 +309,15 @@ def confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfig) -> t
     still caught. Not replacing a pixel costs no consistency.
     """
     z = lum[:, 1:]
-    settled = variances[:, 1:].clamp(min=0).sqrt() < cfg.min_rel_error * z
-    return (settled & (cfg.confirm * z >= lum[:, :1])).any(1)
+    return (settled_mask(z, variances[:, 1:], cfg.min_rel_error) & (cfg.confirm * z >= lum[:, :1])).any(1)
+
+
+def settled_mask(mean: torch.Tensor, variance: torch.Tensor, r0: float) -> torch.Tensor:
+    """Where an estimate's mean is *settled*, ``sqrt(V) < r0 Xbar``: made by many comparable
+    passes. A mean resting on one pass has sqrt(V)/Xbar ~ 1 (two: 0.71), so r0 = 0.5 (the
+    guard's ``min_rel_error``) leaves out one- and two-pass events; a pixel no photon
+    reached (0 / 0) is not settled. ``mean`` and ``variance`` of the same shape."""
+    return variance.clamp(min=0).sqrt() < r0 * mean
 
 
 def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
@@ -506,8 +513,13 @@ def correlated_lowpass_variance(variance: torch.Tensor, rho: torch.Tensor, sigma
     return torch.maximum(shared, lowpass_variance(variance, sigma))
 
 
+#: :func:`anchor_where_biased` with ``settled``: below this share of settled weight in the
+#: low-pass window a pixel is not anchored.
+SETTLED_SHARE = 1e-3
+
+
 def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_variance: torch.Tensor,
-                        sigma: float, k: float, window: float = 0.0) -> torch.Tensor:
+                        sigma: float, k: float, window: float = 0.0, settled: float = 0.0) -> torch.Tensor:
     """The low-frequency anchor applied as far as the gap is larger than the anchor's noise:
 
         yhat' = yhat + a D,   D = G_sigma * (anchor - yhat),   a = |D|^2 / (|D|^2 + k Var(G_sigma * anchor))
@@ -521,14 +533,34 @@ def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_varian
     anchor; where the gap is within that noise a -> 0 and ``yhat`` keeps its
     (lower-variance) low frequencies. a lies in [0, 1] and D -> 0 as the inputs converge,
     so the correction vanishes whatever the noise estimate.
+
+    With ``settled`` r0 > 0 the low-pass takes the anchor's settled pixels only
+    (:func:`settled_mask`), a normalised convolution ``D = G * (m (anchor - yhat)) / G * m``
+    with variance ``sum g^2 m V / (G * m)^2``; pixels with less than :data:`SETTLED_SHARE`
+    settled weight around them are not anchored. A mean made by one pass (a single photon
+    in a wide kernel: a plateau of relative error ~1) is no low-frequency reference, but
+    the noise test lets half of such a gap through (``0000_bright_emitters`` of a
+    regenerated data set, seed 20028, N = 16: relMSE 0.10 of the best input with the plain
+    anchor, 0.002 without it).
     """
-    gap = gaussian_lowpass(anchor - image, sigma)
-    gap2 = gap.square().mean(1, keepdim=True)
     variance = anchor_variance.clamp(min=0.0)
+    if settled > 0:
+        mask = settled_mask(anchor.mean(1, keepdim=True), variance, settled).to(image.dtype)
+        share = gaussian_lowpass(mask, sigma)
+        enough = share > SETTLED_SHARE
+        share = share.clamp(min=SETTLED_SHARE)
+        gap = torch.where(enough, gaussian_lowpass(mask * (anchor - image), sigma) / share, torch.zeros_like(image))
+        variance = variance * mask
+    else:
+        gap = gaussian_lowpass(anchor - image, sigma)
+    gap2 = gap.square().mean(1, keepdim=True)
     if window > 0:
-        var = correlated_lowpass_variance(variance, noise_correlation(anchor, variance, window), sigma)
+        var = correlated_lowpass_variance(variance, noise_correlation(anchor, anchor_variance.clamp(min=0.0), window),
+                                          sigma)
     else:
         var = lowpass_variance(variance, sigma)
+    if settled > 0:
+        var = var / share.square()
     noise = k * var
     a = torch.where(gap2 > 0, gap2 / (gap2 + noise).clamp(min=torch.finfo(gap2.dtype).tiny), torch.zeros_like(gap2))
     return image + a * gap

@@ -162,6 +162,11 @@ class GuideConfig:
     #: whenever they all erred the same way, which the clamp then cannot undo; 0 = the
     #: bare range (checkpoints without the setting read as 0)
     band_sigma: float = 0.0
+    #: envelope modes: the anchor's low-pass takes only the pixels where ~z^m is settled,
+    #: sqrt(V)/Xbar below the guard's r0 (``min_rel_error``; :func:`.guard.settled_mask`), so
+    #: a one-photon plateau of a wide kernel is not taken for a low-frequency reference
+    #: (checkpoints without the setting read as false)
+    anchor_settled: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -200,6 +205,8 @@ class GuideConfig:
         if isinstance(self.band_sigma, bool) or not isinstance(self.band_sigma, (int, float)) \
                 or not math.isfinite(self.band_sigma) or self.band_sigma < 0:
             raise ValueError(f"guide setting 'band_sigma' must be a number >= 0, got {self.band_sigma!r}")
+        if not isinstance(self.anchor_settled, bool):
+            raise ValueError(f"guide setting 'anchor_settled' must be true or false, got {self.anchor_settled!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -410,7 +417,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
     correlation of ~z^m's noise between neighbours; with ``cfg.band_sigma`` kappa the range
     is the union of the intervals ``X_k +- kappa sqrt(V_k)`` (:func:`band_spread`; ``variances``
-    (B, 5, H, W), the five variances of the mean, are then needed). Consistent: the five estimates of pixel
+    (B, 5, H, W), the five variances of the mean, are then needed); with ``cfg.anchor_settled``
+    the anchor's low-pass takes ~z^m's settled pixels only (r0 = the guard's ``min_rel_error``). Consistent: the five estimates of pixel
     c converge to its truth x_c, so does anything clamped between them (the guard's output band), and the anchor's correction
     vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
@@ -430,7 +438,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,
-                                   cfg.anchor_window)
+                                   cfg.anchor_window, guard.min_rel_error if cfg.anchor_settled else 0.0)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
 
