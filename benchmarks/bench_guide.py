@@ -21,9 +21,9 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 ~y left out of the range where it is a lone spike R x above the ~z^j (0 = off); ``NAME anchor_window=W``
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
-``NAME band_sigma=K`` = the same with each pixel's range widened to its estimates' intervals X +- K sqrt(V) (0 = off);
 ``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
 ``NAME anchor_settled=1`` / ``=0`` = the same with the anchor's low-pass over ~z^m's settled pixels only, or over all;
+``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -75,8 +75,6 @@ Y_SPIKES = (0.0, 4.0, 8.0, 16.0)   # the envelope's lone-~y-spike factor (GuideC
 #: the window (px) over which the anchor's noise correlation is estimated (GuideConfig.anchor_window; 0 = off)
 ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
 GUARD_CONFIRMS = (0.0, 2.0, 4.0)   # the guard's confirmation of ~y by a settled ~z^j (GuardConfig.confirm; 0 = off)
-#: the envelope's range widened by kappa standard errors of each estimate (GuideConfig.band_sigma; 0 = off)
-BAND_SIGMAS = (0.0, 0.5, 1.0, 2.0, 3.0)
 #: the anchor's noise multiple k (GuideConfig.anchor_noise; larger: the anchor acts on larger gaps only)
 ANCHOR_NOISES = (0.5, 1.0, 2.0, 4.0, 8.0)
 
@@ -123,9 +121,9 @@ def variants(models: dict) -> dict:
             sweeps = (("y_spike", "guide", "y_spike", Y_SPIKES, net.guide.mode in ENVELOPE_MODES),
                       ("confirm", "guard", "confirm", GUARD_CONFIRMS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_window", "guide", "anchor_window", ANCHOR_WINDOWS, net.guide.mode in ENVELOPE_MODES),
-                      ("band_sigma", "guide", "band_sigma", BAND_SIGMAS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_noise", "guide", "anchor_noise", ANCHOR_NOISES, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_settled", "guide", "anchor_settled", (False, True), net.guide.mode in ENVELOPE_MODES),
+                      ("source", "guide", "source", (2, 3, 4), net.guide.mode in ENVELOPE_MODES),
                       ("cross", "guide", "cross", (0.0, 2.0, 4.0),
                        net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
                       ("oidn", "guide", "quality", OIDN_QUALITIES, True))

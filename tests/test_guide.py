@@ -114,10 +114,6 @@ def test_guide_settings_are_validated():
         with pytest.raises(ValueError, match="anchor_window"):
             GuideConfig(anchor_window=bad)
     assert GuideConfig.from_dict({}).anchor_window == 0
-    for bad in (-0.5, float("nan"), float("inf"), True):
-        with pytest.raises(ValueError, match="band_sigma"):
-            GuideConfig(band_sigma=bad)
-    assert GuideConfig.from_dict({}).band_sigma == 0
     with pytest.raises(ValueError, match="anchor_settled"):
         GuideConfig(anchor_settled=1)
     assert GuideConfig.from_dict({}).anchor_settled is False
@@ -308,58 +304,6 @@ def test_envelope_returns_the_estimates_when_they_agree():
     buf = replace(buf, estimates=same)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
     np.testing.assert_array_equal(denoise(buf, model).rgb, same[0])
-
-
-def test_band_bounds_with_a_spread_are_the_union_of_the_estimates_intervals():
-    """Half-widths d_k per estimate: the range is [min_k (X_k - d_k), max_k (X_k + d_k)],
-    cut at 0; where ~y is left out, only the ~z^j's intervals count; zero widths give the
-    bare range."""
-    from ppmrecon.model.guard import band_bounds
-
-    g = torch.Generator().manual_seed(3)
-    y = torch.rand(1, 3, 6, 7, generator=g) * 4
-    z = torch.rand(1, 4, 3, 6, 7, generator=g) * 4
-    d = torch.rand(1, 5, 1, 6, 7, generator=g)
-    x = torch.cat([y[:, None], z], 1)                              # (1, 5, 3, H, W)
-    lo, hi = band_bounds(y, z, 1.0, spread=d)
-    torch.testing.assert_close(lo, (x - d).amin(1).clamp(min=0))
-    torch.testing.assert_close(hi, (x + d).amax(1))
-    out = torch.zeros(1, 1, 6, 7, dtype=torch.bool)
-    out[..., 2, 3] = True
-    lo2, hi2 = band_bounds(y, z, 1.0, out, d)
-    torch.testing.assert_close(hi2[..., 2, 3], (z + d[:, 1:])[..., 2, 3].amax(1))
-    torch.testing.assert_close(hi2[..., 0, 0], hi[..., 0, 0])
-    bare = band_bounds(y, z, 1.0)
-    for a, b in zip(band_bounds(y, z, 1.0, spread=torch.zeros_like(d)), bare):
-        torch.testing.assert_close(a, b)
-
-
-def test_band_sigma_lets_the_guide_leave_the_bare_range_by_the_estimates_noise():
-    """issue 12: five estimates that all erred the same way leave the truth outside their
-    bare range, and the clamp holds the guide at the nearest one. With ``band_sigma`` the
-    range is widened by kappa standard errors of the mean: the output may follow the guide
-    by up to that much, no further, and with V = 0 (converged) it is the bare envelope."""
-    buf = make_buffer(32, 32, seed=23)
-    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
-    bare = denoise(buf, model).rgb
-    wide = denoise(buf, model, guide=replace(model.guide, band_sigma=2.0)).rgb
-    from ppmrecon.model.guard import guard_buffer
-
-    gb = guard_buffer(buf, DEFAULT_ON)
-    d = 2.0 * np.sqrt(np.clip(gb.variances, 0, None))[..., None]   # (5, H, W, 1)
-    lo = np.clip((gb.estimates - d).min(0), 0, None)
-    hi = (gb.estimates + d).max(0)
-    assert bool(((wide >= lo - 1e-5 * np.abs(lo) - 1e-7) & (wide <= hi + 1e-5 * np.abs(hi))).all())
-    assert float(np.abs(wide - bare).max()) > 0                    # the guide was held somewhere before
-    still = replace(buf, variances=np.zeros_like(buf.variances))
-    np.testing.assert_allclose(denoise(still, model, guide=replace(model.guide, band_sigma=2.0)).rgb,
-                               denoise(still, model).rgb, rtol=1e-6, atol=0)
-    with pytest.raises(ValueError, match="band_sigma needs"):
-        from ppmrecon.model.guide import envelope
-
-        t = torch.ones(1, 3, 4, 4)
-        envelope(torch.ones(1, 4, 4, 4), t, torch.ones(1, 4, 3, 4, 4), torch.ones(1, 1, 4, 4), DEFAULT_ON,
-                 replace(model.guide, band_sigma=1.0))
 
 
 def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood(monkeypatch):

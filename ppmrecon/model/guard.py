@@ -400,25 +400,17 @@ def output_band(image: torch.Tensor, y: torch.Tensor, z: torch.Tensor, band: flo
 
 
 def band_bounds(y: torch.Tensor, z: torch.Tensor, band: float,
-                y_out: torch.Tensor | None = None,
-                spread: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+                y_out: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """The ends ``(min_k X_k / band, max_k X_k * band)`` of :func:`output_band` (band >= 1),
     each (B, 3, H, W), for callers that clamp more than one image into them; ``y_out``
     (B, 1, H, W) bool: pixels whose range is that of the four ~z^j alone (still
-    consistent: they converge to the truth without ~y). ``spread`` (B, 5, 1, H, W), when
-    given: a half-width d_k per estimate (k = 0 is ~y), the range then being the union of
-    the intervals ``[X_k - d_k, X_k + d_k]`` (consistent as long as every d_k -> 0)."""
-    if spread is not None:
-        y_lo, y_hi = y - spread[:, 0], y + spread[:, 0]
-        z_lo, z_hi = (z - spread[:, 1:]).amin(1), (z + spread[:, 1:]).amax(1)
-    else:
-        y_lo = y_hi = y
-        z_lo, z_hi = torch.aminmax(z, dim=1)              # one pass over the four ~z^j
-    lo = torch.minimum(y_lo, z_lo).clamp_(min=0.0)
-    hi = torch.maximum(y_hi, z_hi)
+    consistent: they converge to the truth without ~y)."""
+    zmin, zmax = torch.aminmax(z, dim=1)                  # one pass over the four ~z^j
+    lo = torch.minimum(y, zmin).clamp_(min=0.0)
+    hi = torch.maximum(y, zmax)
     if y_out is not None:
-        lo = torch.where(y_out, z_lo.clamp(min=0.0), lo)
-        hi = torch.where(y_out, z_hi, hi)
+        lo = torch.where(y_out, zmin.clamp(min=0.0), lo)
+        hi = torch.where(y_out, zmax, hi)
     if band != 1:
         lo, hi = lo / band, hi * band
     return lo, hi

@@ -156,12 +156,6 @@ class GuideConfig:
     #: (:func:`.guard.correlated_lowpass_variance`); 0 = independent pixels (checkpoints
     #: without the setting read as 0)
     anchor_window: float = 0.0
-    #: envelope modes: > 0 widens each pixel's range to the union of its five estimates'
-    #: intervals ``X_k +- kappa sqrt(V_k)``, V_k the estimate's variance of the mean
-    #: (:func:`band_spread`): the truth lies outside the bare range of five estimates
-    #: whenever they all erred the same way, which the clamp then cannot undo; 0 = the
-    #: bare range (checkpoints without the setting read as 0)
-    band_sigma: float = 0.0
     #: envelope modes: the anchor's low-pass takes only the pixels where ~z^m is settled,
     #: sqrt(V)/Xbar below the guard's r0 (``min_rel_error``; :func:`.guard.settled_mask`), so
     #: a one-photon plateau of a wide kernel is not taken for a low-frequency reference
@@ -202,9 +196,6 @@ class GuideConfig:
         if isinstance(self.anchor_window, bool) or not isinstance(self.anchor_window, (int, float)) \
                 or not math.isfinite(self.anchor_window) or self.anchor_window < 0:
             raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
-        if isinstance(self.band_sigma, bool) or not isinstance(self.band_sigma, (int, float)) \
-                or not math.isfinite(self.band_sigma) or self.band_sigma < 0:
-            raise ValueError(f"guide setting 'band_sigma' must be a number >= 0, got {self.band_sigma!r}")
         if not isinstance(self.anchor_settled, bool):
             raise ValueError(f"guide setting 'anchor_settled' must be true or false, got {self.anchor_settled!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
@@ -391,17 +382,8 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     return planes(g, cfg, scale, floor)
 
 
-def band_spread(variances: torch.Tensor, kappa: float) -> torch.Tensor:
-    """Half-widths ``kappa sqrt(V_k)`` of the five estimates' intervals, (B, 5, 1, H, W), from
-    their variances of the mean ``variances`` (B, 5, H, W) (the buffer's ``V``, the mean over
-    R, G, B, so one width serves the three channels). V_k -> 0 with N, so the widened range
-    still closes on the truth."""
-    return (kappa * variances.clamp(min=0.0).sqrt()).unsqueeze(2)
-
-
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
-             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
-             variances: torch.Tensor | None = None) -> torch.Tensor:
+             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -415,12 +397,10 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
-    correlation of ~z^m's noise between neighbours; with ``cfg.band_sigma`` kappa the range
-    is the union of the intervals ``X_k +- kappa sqrt(V_k)`` (:func:`band_spread`; ``variances``
-    (B, 5, H, W), the five variances of the mean, are then needed); with ``cfg.anchor_settled``
-    the anchor's low-pass takes ~z^m's settled pixels only (r0 = the guard's ``min_rel_error``). Consistent: the five estimates of pixel
-    c converge to its truth x_c, so does anything clamped between them (the guard's output band), and the anchor's correction
-    vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
+    correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` the anchor's
+    low-pass takes ~z^m's settled pixels only (r0 = the guard's ``min_rel_error``).
+    Consistent: the five estimates of pixel c converge to its truth x_c, so does anything
+    clamped between them (the guard's output band), and the anchor's correction vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
     Why it can beat Eq. 6 with the same guide: the softmax over the 4 K^2 terms near g
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
@@ -429,12 +409,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     from .guard import anchor_where_biased, band_bounds
 
     spikes = y_spike_mask(y, z, cfg, guard, scale)
-    spread = None
-    if cfg.band_sigma:
-        if variances is None:
-            raise ValueError("envelope: the guide's band_sigma needs the inputs' variances")
-        spread = band_spread(variances, cfg.band_sigma)
-    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes, spread)
+    lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,

@@ -257,12 +257,12 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
     device = torch.device(device)
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
-    variances = torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32)).to(device)[None]
+    variance = torch.from_numpy(np.ascontiguousarray(buf.variances[guide.anchor_source], np.float32))
     if guide.y_spike and scale is None:
         scale = _scale(buf)
     with torch.no_grad():
-        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variances[:, guide.anchor_source, None],
-                         guard, guide, scale or 0.0, variances)
+        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance[None, None].to(device), guard, guide,
+                         scale or 0.0)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
