@@ -22,8 +22,8 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
 ``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
-``NAME anchor_settled=1`` / ``=0`` = the same with the anchor's low-pass over ~z^m's settled pixels only, or over all;
-``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4);
+``NAME anchor_settled=R`` = the same with the anchor acting only where its low-pass is settled (sd < R x level; 0 = off);
+``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4); ``NAME anchor_source=M`` = the same anchored to ~z^M;
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -77,6 +77,8 @@ ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
 GUARD_CONFIRMS = (0.0, 2.0, 4.0)   # the guard's confirmation of ~y by a settled ~z^j (GuardConfig.confirm; 0 = off)
 #: the anchor's noise multiple k (GuideConfig.anchor_noise; larger: the anchor acts on larger gaps only)
 ANCHOR_NOISES = (0.5, 1.0, 2.0, 4.0, 8.0)
+#: the anchor only where its low-pass's standard deviation is below r0 x its level (GuideConfig.anchor_settled; 0 = off)
+ANCHOR_SETTLED = (0.0, 0.5, 0.7, 1.0)
 
 
 def rendered(loaded, key: str, passes: int, cache: Path) -> B.BufferFile:
@@ -122,8 +124,9 @@ def variants(models: dict) -> dict:
                       ("confirm", "guard", "confirm", GUARD_CONFIRMS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_window", "guide", "anchor_window", ANCHOR_WINDOWS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_noise", "guide", "anchor_noise", ANCHOR_NOISES, net.guide.mode in ENVELOPE_MODES),
-                      ("anchor_settled", "guide", "anchor_settled", (False, True), net.guide.mode in ENVELOPE_MODES),
+                      ("anchor_settled", "guide", "anchor_settled", ANCHOR_SETTLED, net.guide.mode in ENVELOPE_MODES),
                       ("source", "guide", "source", (2, 3, 4), net.guide.mode in ENVELOPE_MODES),
+                      ("anchor_source", "guide", "anchor_source", (1, 2, 3, 4), net.guide.mode in ENVELOPE_MODES),
                       ("cross", "guide", "cross", (0.0, 2.0, 4.0),
                        net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
                       ("oidn", "guide", "quality", OIDN_QUALITIES, True))
@@ -295,7 +298,9 @@ def _subset(items: dict, chosen: str | None, option: str) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=Path, required=True, help="folder of the literature scenes (../shared/scenes)")
-    ap.add_argument("--data", type=Path, help="a generated data set: score its validation images too")
+    ap.add_argument("--data", type=Path, action="append", default=[],
+                    help="a generated data set: score its validation images too (repeatable: several data sets, "
+                         "their images named <folder>/<scene> ...)")
     ap.add_argument("--split", choices=("val", "train", "all"), default="val",
                     help="which images of --data (default val; 'train' and 'all' are held out only for "
                          "what has no trained weights: the envelope, OIDN, the guide alone)")
@@ -331,22 +336,24 @@ def main() -> None:
             scene_rows.append({"image": f"{key} N={n}", "scene": key, "passes": n, **row})
             print(f"{key} N={n}: " + ", ".join(f"{k} {v['ratio']:.2f}" for k, v in row["variants"].items()), flush=True)
     val_rows = []
-    if args.data:
-        from ppmrecon.train.datagen import REFERENCE, load_manifest
+    from ppmrecon.train.datagen import REFERENCE, load_manifest
 
-        for scene in load_manifest(args.data)["scenes"]:
+    for data in args.data:
+        prefix = f"{data.name}/" if len(args.data) > 1 else ""
+        for scene in load_manifest(data)["scenes"]:
             if args.split != "all" and scene.get("split") != args.split or not scene.get("reference"):
                 continue
-            ref, _ = B.read_rgb(args.data / scene["id"] / REFERENCE)
-            halves = [args.data / scene["id"] / h["file"] for h in scene.get("references", [])]
+            ref, _ = B.read_rgb(data / scene["id"] / REFERENCE)
+            halves = [data / scene["id"] / h["file"] for h in scene.get("references", [])]
             ref_error = (reference_error(*(B.read_rgb(h)[0] for h in halves))
                          if len(halves) == 2 and all(h.exists() for h in halves) else None)
             for item in scene.get("inputs", []):
-                buf = B.read_buffers(args.data / scene["id"] / item["file"])
+                buf = B.read_buffers(data / scene["id"] / item["file"])
                 row = score_image(buf, ref, fns, ref_error)
-                val_rows.append({"image": f"{scene['id']} {item['file']}", "scene": scene["id"],
+                val_rows.append({"image": f"{prefix}{scene['id']} {item['file']}", "scene": prefix + scene["id"],
                                  "family": scene.get("family", scene["id"].split("_", 1)[-1]),
                                  "passes": item["passes"], **row})
+    if args.data:
         print(f"validation: {len(val_rows)} images", flush=True)
     report = {"models": {k: str(v) for k, v in models.items()}, "scenes": scene_rows, "validation": val_rows,
               "split": args.split,
@@ -354,7 +361,7 @@ def main() -> None:
               "summary_validation": summary(val_rows, names) if val_rows else [],
               "minutes": (time.perf_counter() - t0) / 60}
     write_json(args.out / "guide.json", report)
-    cmd = "benchmarks/bench_guide.py --scenes ../shared/scenes" + (f" --data {args.data}" if args.data else "") \
+    cmd = "benchmarks/bench_guide.py --scenes ../shared/scenes" + "".join(f" --data {d}" for d in args.data) \
         + (f" --split {args.split}" if args.split != "val" else "") \
         + "".join(f" --model {k}={v}" for k, v in models.items()) \
         + (f" --variants '{args.variants}'" if args.variants else "") \
@@ -373,7 +380,8 @@ def main() -> None:
              "## Literature scenes (never trained on) and built-in caustic scenes", "", *table(report["summary_scenes"])]
     if val_rows:
         which = {"val": "Validation images", "train": "Training-split images", "all": "All images"}[args.split]
-        lines += ["", f"## {which} of `{args.data}` (every N)", "", *table(report["summary_validation"])]
+        lines += ["", f"## {which} of {', '.join(f'`{d}`' for d in args.data)} (every N)", "",
+                  *table(report["summary_validation"])]
         # the trained models and the guide alone, per family and N (every variant would not fit a page)
         chosen = [n for n in names if n in models or n in ("oidn(z4)", "guide b=0.03", "envelope k=1")]
         lines += ["", f"### Per family and N ({which.lower()})", "",

@@ -47,8 +47,9 @@ RESHIP_NUMBERS = (
                              "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)", "guide", "y_spike"),
     ("--guide-anchor-window", "W", "ship with the anchor's noise correlation estimated over a W px window "
                                    "(GuideConfig.anchor_window; 0 = independent pixels)", "guide", "anchor_window"),
-    ("--guide-anchor-settled", "0|1", "ship with the anchor's low-pass over ~z^m's settled pixels only (1) or over "
-                                      "all (0) (GuideConfig.anchor_settled)", "guide", "anchor_settled"),
+    ("--guide-anchor-settled", "R", "ship with the anchor acting only where its low-pass is settled, its "
+                                    "standard deviation below R x its level (GuideConfig.anchor_settled; 0 = off)",
+     "guide", "anchor_settled"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
 )
@@ -64,10 +65,6 @@ def changed(cfg, values: list[tuple[str, float, str]]):
     """``cfg`` (a guide or guard config) with ``values`` (:func:`reship_values`); a value the
     config refuses is one line naming the option."""
     for key, value, option in values:
-        if isinstance(getattr(cfg, key), bool):          # a switch, given as 0 or 1
-            if value not in (0, 1):
-                sys.exit(f"ship_model: {option}: must be 0 or 1, got {value:g}")
-            value = bool(value)
         try:
             cfg = replace(cfg, **{key: value})
         except ValueError as exc:
@@ -274,6 +271,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + ", anchored at low frequencies to "
             f"~z^{guide.anchor_source} where they differ by more than its noise"
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
+            + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"
+               if guide.anchor_settled else "")
             + f"{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 

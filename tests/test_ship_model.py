@@ -123,6 +123,13 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
         _run(ship_model, monkeypatch, "--guard-confirm", "1")
     with pytest.raises(SystemExit, match="--guard-confirm changes a shipped default"):
         _run(ship_model, monkeypatch, str(tmp_path / "run"), "--guard-confirm", "4")
+    _run(ship_model, monkeypatch, "--guide-anchor-settled", "0.9")
+    settled = C.load_checkpoint(tmp_path / "default.pt")
+    assert settled.model.guide == replace(confirmed.model.guide, anchor_settled=0.9)
+    assert "where its low-pass is settled (standard deviation < 0.9 x its level)" in (tmp_path / "default.md").read_text()
+    assert "--guide-anchor-settled 0.9" in (tmp_path / "default.md").read_text()
+    with pytest.raises(SystemExit, match="--guide-anchor-settled"):
+        _run(ship_model, monkeypatch, "--guide-anchor-settled", "-1")
 
 
 def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path, monkeypatch):

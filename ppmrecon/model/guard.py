@@ -505,11 +505,6 @@ def correlated_lowpass_variance(variance: torch.Tensor, rho: torch.Tensor, sigma
     return torch.maximum(shared, lowpass_variance(variance, sigma))
 
 
-#: :func:`anchor_where_biased` with ``settled``: below this share of settled weight in the
-#: low-pass window a pixel is not anchored.
-SETTLED_SHARE = 1e-3
-
-
 def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_variance: torch.Tensor,
                         sigma: float, k: float, window: float = 0.0, settled: float = 0.0) -> torch.Tensor:
     """The low-frequency anchor applied as far as the gap is larger than the anchor's noise:
@@ -526,35 +521,28 @@ def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_varian
     (lower-variance) low frequencies. a lies in [0, 1] and D -> 0 as the inputs converge,
     so the correction vanishes whatever the noise estimate.
 
-    With ``settled`` r0 > 0 the low-pass takes the anchor's settled pixels only
-    (:func:`settled_mask`), a normalised convolution ``D = G * (m (anchor - yhat)) / G * m``
-    with variance ``sum g^2 m V / (G * m)^2``; pixels with less than :data:`SETTLED_SHARE`
-    settled weight around them are not anchored. A mean made by one pass (a single photon
-    in a wide kernel: a plateau of relative error ~1) is no low-frequency reference, but
-    the noise test lets half of such a gap through (``0000_bright_emitters`` of a
-    regenerated data set, seed 20028, N = 16: relMSE 0.10 of the best input with the plain
-    anchor, 0.002 without it).
+    With ``settled`` r0 > 0 the anchor acts only where its own low-pass is *settled*,
+    ``sqrt(Var) < r0 G_sigma * anchor`` (:func:`settled_mask` of the low-pass, RGB mean):
+    a low-pass that rests on one photon event (a wide kernel's plateau, whose neighbours
+    share the same photon, so the correlated variance stays ~ V) is no low-frequency
+    reference, yet the noise test above lets half of a one-sigma gap through
+    (``0000_bright_emitters`` of this session's targeted data, scene seed 20028, N = 16:
+    relMSE 0.10 of the best input with the anchor, 0.002 without it). Not shipped: it also
+    removes the anchor from the sparse glossy floor of the literature ``cornell-box``, where
+    OIDN crushes the speckles and the plain anchor restores part of the mean (README,
+    *Measured figures*).
     """
     variance = anchor_variance.clamp(min=0.0)
-    if settled > 0:
-        mask = settled_mask(anchor.mean(1, keepdim=True), variance, settled).to(image.dtype)
-        share = gaussian_lowpass(mask, sigma)
-        enough = share > SETTLED_SHARE
-        share = share.clamp(min=SETTLED_SHARE)
-        gap = torch.where(enough, gaussian_lowpass(mask * (anchor - image), sigma) / share, torch.zeros_like(image))
-        variance = variance * mask
-    else:
-        gap = gaussian_lowpass(anchor - image, sigma)
+    gap = gaussian_lowpass(anchor - image, sigma)
     gap2 = gap.square().mean(1, keepdim=True)
     if window > 0:
-        var = correlated_lowpass_variance(variance, noise_correlation(anchor, anchor_variance.clamp(min=0.0), window),
-                                          sigma)
+        var = correlated_lowpass_variance(variance, noise_correlation(anchor, variance, window), sigma)
     else:
         var = lowpass_variance(variance, sigma)
-    if settled > 0:
-        var = var / share.square()
     noise = k * var
     a = torch.where(gap2 > 0, gap2 / (gap2 + noise).clamp(min=torch.finfo(gap2.dtype).tiny), torch.zeros_like(gap2))
+    if settled > 0:
+        a = a * settled_mask(gaussian_lowpass(anchor, sigma).mean(1, keepdim=True), var, settled).to(a.dtype)
     return image + a * gap
 
 

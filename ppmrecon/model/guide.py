@@ -156,11 +156,12 @@ class GuideConfig:
     #: (:func:`.guard.correlated_lowpass_variance`); 0 = independent pixels (checkpoints
     #: without the setting read as 0)
     anchor_window: float = 0.0
-    #: envelope modes: the anchor's low-pass takes only the pixels where ~z^m is settled,
-    #: sqrt(V)/Xbar below the guard's r0 (``min_rel_error``; :func:`.guard.settled_mask`), so
-    #: a one-photon plateau of a wide kernel is not taken for a low-frequency reference
-    #: (checkpoints without the setting read as false)
-    anchor_settled: bool = False
+    #: envelope modes: > 0 lets the anchor act only where its own low-pass is settled,
+    #: sqrt(Var(G * ~z^m)) below this r0 times G * ~z^m (:func:`.guard.anchor_where_biased`): a
+    #: mean resting on one photon event has a ratio ~1, on k events ~1/sqrt(k), so one
+    #: photon's plateau under a wide kernel is not taken for a low-frequency reference;
+    #: 0 = off (checkpoints without the setting read as 0)
+    anchor_settled: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -196,8 +197,9 @@ class GuideConfig:
         if isinstance(self.anchor_window, bool) or not isinstance(self.anchor_window, (int, float)) \
                 or not math.isfinite(self.anchor_window) or self.anchor_window < 0:
             raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
-        if not isinstance(self.anchor_settled, bool):
-            raise ValueError(f"guide setting 'anchor_settled' must be true or false, got {self.anchor_settled!r}")
+        if isinstance(self.anchor_settled, bool) or not isinstance(self.anchor_settled, (int, float)) \
+                or not math.isfinite(self.anchor_settled) or self.anchor_settled < 0:
+            raise ValueError(f"guide setting 'anchor_settled' must be a ratio >= 0 (0 = off), got {self.anchor_settled!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -397,8 +399,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
-    correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` the anchor's
-    low-pass takes ~z^m's settled pixels only (r0 = the guard's ``min_rel_error``).
+    correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` r0 the anchor
+    acts only where its low-pass is settled (its standard deviation below r0 times its level).
     Consistent: the five estimates of pixel c converge to its truth x_c, so does anything
     clamped between them (the guard's output band), and the anchor's correction vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
     with the guide as prior: see the module docstring and the README.
@@ -413,7 +415,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,
-                                   cfg.anchor_window, guard.min_rel_error if cfg.anchor_settled else 0.0)
+                                   cfg.anchor_window, cfg.anchor_settled)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
 
