@@ -23,7 +23,7 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
 ``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
 ``NAME anchor_settled=R`` = the same with the anchor acting only where its low-pass is settled (sd < R x level; 0 = off);
-``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4); ``NAME anchor_source=M`` = the same anchored to ~z^M;
+``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4); ``NAME anchor_source=M`` = the same anchored to ~z^M; ``NAME y_weight=F`` = the same with OIDN(~y)'s weight F in the guide (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default
@@ -127,6 +127,8 @@ def variants(models: dict) -> dict:
                       ("anchor_settled", "guide", "anchor_settled", ANCHOR_SETTLED, net.guide.mode in ENVELOPE_MODES),
                       ("source", "guide", "source", (2, 3, 4), net.guide.mode in ENVELOPE_MODES),
                       ("anchor_source", "guide", "anchor_source", (1, 2, 3, 4), net.guide.mode in ENVELOPE_MODES),
+                      ("y_weight", "guide", "y_weight", (0.0, 1.0, 2.0, 4.0),
+                       net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
                       ("cross", "guide", "cross", (0.0, 2.0, 4.0),
                        net.guide.mode in ENVELOPE_MODES and bool(net.guide.source)),
                       ("oidn", "guide", "quality", OIDN_QUALITIES, True))
