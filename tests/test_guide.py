@@ -523,6 +523,30 @@ def test_cli_and_api_guide_y_spike(tmp_path, capsys):
         ppmrecon.denoise(buf, tmp_path / "m.pt", guide_y_spike=0.5)
 
 
+def test_cli_and_api_guide_anchor_settled(tmp_path, capsys):
+    """--guide-anchor-settled / guide_anchor_settled= switch the settled anchor on (the header
+    says it; CLI and API agree); negative or not a number: one clear line, exit 2, no output."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=16)
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
+    assert denoise_main(args + ["--guide-anchor-settled", "0.5", "-o", str(tmp_path / "s.exr")]) == 0
+    out, header = B.read_rgb(tmp_path / "s.exr")
+    assert header["ppmrecon.guide"].endswith(" settled=0.5")
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_anchor_settled=0.5), out)
+    assert denoise_main(args + ["-o", str(tmp_path / "p.exr")]) == 0
+    assert "settled" not in B.read_rgb(tmp_path / "p.exr")[1]["ppmrecon.guide"]
+    for bad in ("-1", "nan"):
+        assert denoise_main(args + ["--guide-anchor-settled", bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert "--guide-anchor-settled" in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
+    with pytest.raises(UsageError, match="guide_anchor_settled"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_anchor_settled=-0.5)
+
+
 def test_training_refuses_the_envelope_mode(tmp_path):
     """The envelope runs no network: a training config asking for it is one clear error
     (before any data is read)."""

@@ -110,6 +110,11 @@ def build_parser() -> ArgumentParser:
                    help="envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x "
                         "above every ~z^j of the pixel and its own 3 x 3 median; 0 = off, else R > 1 "
                         "(default: the checkpoint's; the shipped model's 8)")
+    p.add_argument("--guide-anchor-settled", type=float, default=None, metavar="R",
+                   help="envelope modes: the anchor acts only where its own low-pass is settled, its "
+                        "standard deviation below R x its level (helps next to small bright emitters, "
+                        "costs the glossy Cornell box's low frequencies; README); 0 = off (default: the "
+                        "checkpoint's; the shipped model's 0)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -204,6 +209,11 @@ def with_guide_y_spike(guide: GuideConfig, ratio: float | None, option: str, swi
     return _with_guide_number(guide, "y_spike", ratio, option, switch)
 
 
+def with_guide_anchor_settled(guide: GuideConfig, ratio: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``anchor_settled`` = ``ratio`` (None: unchanged), as :func:`with_guide_y_weight`."""
+    return _with_guide_number(guide, "anchor_settled", ratio, option, switch)
+
+
 def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
     if value is None:
         return guide
@@ -282,6 +292,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
     guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
     guide = with_guide_y_spike(guide, args.guide_y_spike, "--guide-y-spike", "--guide")
+    guide = with_guide_anchor_settled(guide, args.guide_anchor_settled, "--guide-anchor-settled", "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -330,8 +341,9 @@ def _guide_header(guide: GuideConfig) -> str:
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode in ENVELOPE_MODES
            else f"beta={guide.beta:g}")
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
+    settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
-            f"y={guide.y_weight:g}{spike}")
+            f"y={guide.y_weight:g}{spike}{settled}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
