@@ -470,20 +470,34 @@ def test_cli_guide_mode(tmp_path):
         GuideConfig(enabled=True, mode="blend")
 
 
+def _envelope_cli(tmp_path, buf) -> list[str]:
+    """``ppmrecon-denoise`` arguments for ``buf`` written to tmp_path/in.exr, an untrained
+    tiny model tmp_path/m.pt, quiet, envelope mode."""
+    B.write_buffers(tmp_path / "in.exr", buf)
+    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
+    return [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
+
+
+def _cli_and_api_agree(tmp_path, buf, args: list[str], flag: str, value: str, header_end: str, **api) -> np.ndarray:
+    """``ppmrecon-denoise ARGS FLAG VALUE`` writes what ``ppmrecon.denoise(buf, ..., **api)``
+    returns, and its guide header ends with ``header_end``; the image."""
+    import ppmrecon
+
+    assert denoise_main(args + [flag, value, "-o", str(tmp_path / "cli.exr")]) == 0
+    image, header = B.read_rgb(tmp_path / "cli.exr")
+    assert header["ppmrecon.guide"].endswith(header_end)
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", **api), image)
+    return image
+
+
 def test_cli_and_api_guide_y_weight(tmp_path, capsys):
     """--guide-y-weight / guide_y_weight= set the weight of OIDN's image of ~y in the guide
     (the header says it); negative or not a number, or with the guide off: one clear line, exit 2."""
     import ppmrecon
 
     buf = make_buffer(24, 24, seed=14)
-    B.write_buffers(tmp_path / "in.exr", buf)
-    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
-    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
-    assert denoise_main(args + ["--guide-y-weight", "2", "-o", str(tmp_path / "y.exr")]) == 0
-    mixed, header = B.read_rgb(tmp_path / "y.exr")
-    assert header["ppmrecon.guide"].endswith("y=2")
-    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
-                                                   guide_y_weight=2.0), mixed)
+    args = _envelope_cli(tmp_path, buf)
+    mixed = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-weight", "2", "y=2", guide_y_weight=2.0)
     plain = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope", guide_y_weight=0.0)
     assert not np.array_equal(plain, mixed)
     for bad in ("-0.5", "nan", "inf"):
@@ -529,14 +543,8 @@ def test_cli_and_api_guide_anchor_settled(tmp_path, capsys):
     import ppmrecon
 
     buf = make_buffer(24, 24, seed=16)
-    B.write_buffers(tmp_path / "in.exr", buf)
-    C.init_checkpoint(tmp_path / "m.pt", "tiny", FeatureConfig())
-    args = [str(tmp_path / "in.exr"), "--model", str(tmp_path / "m.pt"), "-q", "--guide-mode", "envelope"]
-    assert denoise_main(args + ["--guide-anchor-settled", "0.5", "-o", str(tmp_path / "s.exr")]) == 0
-    out, header = B.read_rgb(tmp_path / "s.exr")
-    assert header["ppmrecon.guide"].endswith(" settled=0.5")
-    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
-                                                   guide_anchor_settled=0.5), out)
+    args = _envelope_cli(tmp_path, buf)
+    _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-settled", "0.5", " settled=0.5", guide_anchor_settled=0.5)
     assert denoise_main(args + ["-o", str(tmp_path / "p.exr")]) == 0
     assert "settled" not in B.read_rgb(tmp_path / "p.exr")[1]["ppmrecon.guide"]
     for bad in ("-1", "nan"):
