@@ -22,8 +22,10 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
 ``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
-``NAME anchor_settled=R`` = the same with the anchor acting only where its low-pass is settled (sd < R x level; 0 = off);
-``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4); ``NAME anchor_source=M`` = the same anchored to ~z^M; ``NAME y_weight=F`` = the same with OIDN(~y)'s weight F in the guide (0 = off);
+``NAME anchor_settled=R`` = the same with the anchor acting only where its low-pass is settled (sd < R x level;
+0 = off);
+``NAME source=J`` = the same with OIDN's main input ~z^J (shipped 4); ``NAME anchor_source=M`` = the same
+anchored to ~z^M; ``NAME y_weight=F`` = the same with OIDN(~y)'s weight F in the guide (0 = off);
 ``guide b=B`` = the guide alone (an untrained guided model: zero head) with tolerance beta
 B and the default cross rule (2); ``guide cross=C`` = the same at beta 0.03 with cross C
 (0 = off); ``guide K=K`` = the same with a K x K window (default

@@ -126,7 +126,8 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     _run(ship_model, monkeypatch, "--guide-anchor-settled", "0.9")
     settled = C.load_checkpoint(tmp_path / "default.pt")
     assert settled.model.guide == replace(confirmed.model.guide, anchor_settled=0.9)
-    assert "where its low-pass is settled (standard deviation < 0.9 x its level)" in (tmp_path / "default.md").read_text()
+    card = (tmp_path / "default.md").read_text()
+    assert "where its low-pass is settled (standard deviation < 0.9 x its level)" in card
     assert "--guide-anchor-settled 0.9" in (tmp_path / "default.md").read_text()
     with pytest.raises(SystemExit, match="--guide-anchor-settled"):
         _run(ship_model, monkeypatch, "--guide-anchor-settled", "-1")

@@ -199,7 +199,8 @@ class GuideConfig:
             raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
         if isinstance(self.anchor_settled, bool) or not isinstance(self.anchor_settled, (int, float)) \
                 or not math.isfinite(self.anchor_settled) or self.anchor_settled < 0:
-            raise ValueError(f"guide setting 'anchor_settled' must be a ratio >= 0 (0 = off), got {self.anchor_settled!r}")
+            raise ValueError("guide setting 'anchor_settled' must be a ratio >= 0 (0 = off), "
+                             f"got {self.anchor_settled!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -402,8 +403,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` r0 the anchor
     acts only where its low-pass is settled (its standard deviation below r0 times its level).
     Consistent: the five estimates of pixel c converge to its truth x_c, so does anything
-    clamped between them (the guard's output band), and the anchor's correction vanishes. Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6
-    with the guide as prior: see the module docstring and the README.
+    clamped between them (the guard's output band), and the anchor's correction vanishes.
+    Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6 with the
+    guide as prior: see the module docstring and the README.
     Why it can beat Eq. 6 with the same guide: the softmax over the 4 K^2 terms near g
     averages their noise (and weighs them by the RGB mean alone), while the clamp returns g
     itself wherever the pixel's estimates leave room for it.
