@@ -22,6 +22,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from ppmrecon.cli_common import positive_int  # noqa: E402
+from ppmrecon.errors import PpmreconError  # noqa: E402
 from ppmrecon.fileio import write_json  # noqa: E402
 from ppmrecon.train.cli import builtin_configs, config_file  # noqa: E402
 from ppmrecon.train.datagen import DataConfig, generate, plan  # noqa: E402
@@ -39,18 +41,21 @@ def main() -> None:
                     metavar="NAME|FILE.json", help="the full data set's config (default: v2_cpu)")
     ap.add_argument("--index", required=True, help="comma-separated scene indices of that data set")
     ap.add_argument("--out", type=Path, required=True, help="parent folder: one data set t<iiii> per index")
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--workers", type=positive_int, default=1)
     ap.add_argument("--quiet", "-q", action="store_true")
     args = ap.parse_args()
     try:
         indices = [int(v) for v in args.index.split(",")]
     except ValueError:
         sys.exit(f"targeted_data: --index: expected comma-separated integers, got {args.index!r}")
-    cfg = DataConfig.load(args.config)
+    if min(indices) < 0:
+        sys.exit(f"targeted_data: --index: {min(indices)} is negative")
+    try:
+        cfg = DataConfig.load(args.config)
+    except (PpmreconError, ValueError) as exc:
+        sys.exit(f"targeted_data: {exc}")
     full = plan(replace(cfg, scenes=max(indices) + 1))
     for i in indices:
-        if i < 0:
-            sys.exit(f"targeted_data: --index: {i} is negative")
         one = one_scene_config(cfg, i)
         mine = plan(one)[0]
         if (mine["family"], mine["seed"], mine["params"]) != (full[i]["family"], full[i]["seed"], full[i]["params"]):
@@ -59,7 +64,10 @@ def main() -> None:
         out.mkdir(parents=True, exist_ok=True)
         write_json(out / "config.json", {**asdict(one), "_doc": f"scene {i} ({full[i]['id']}) of {args.config}"})
         print(f"{out}: scene {i} = {full[i]['id']}, seed {mine['seed']}", flush=True)
-        generate(one, out, workers=args.workers, quiet=args.quiet)
+        try:
+            generate(one, out, workers=args.workers, quiet=args.quiet)
+        except PpmreconError as exc:                        # a foreign data set in the folder, a failed item
+            sys.exit(f"targeted_data: {exc}")
 
 
 if __name__ == "__main__":
