@@ -21,6 +21,8 @@ envelope checkpoint with the guide's cross rule at C (0 = off); ``NAME y_spike=R
 ~y left out of the range where it is a lone spike R x above the ~z^j (0 = off); ``NAME anchor_window=W``
 = the same with the anchor's noise correlation estimated over a W px window (0 = independent pixels);
 ``NAME confirm=C`` = the same with the guard's confirmation of ~y by a settled ~z^j at factor C (0 = off);
+``NAME peers=M`` = the same with the guard's speckle-field test: no outlier where M unsettled
+pixels of its 5 x 5 window are within 4x of it (0 = off);
 ``NAME anchor_noise=K`` = the same with the anchor acting on gaps beyond K x its noise (shipped 1);
 ``NAME anchor_settled=R`` = the same with the anchor acting only where its low-pass is settled (sd < R x level;
 0 = off);
@@ -58,6 +60,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_quality import LITERATURE, oidn  # noqa: E402
+from deep_reference import DEEP, DEEP_HALVES  # noqa: E402
 from study import BUILTIN, references, renderer  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
@@ -76,6 +79,7 @@ ENVELOPE_Y_WEIGHTS = (0.0, 1.0, 2.0, 4.0)   # weight of OIDN's image of ~y in th
 Y_SPIKES = (0.0, 4.0, 8.0, 16.0)   # the envelope's lone-~y-spike factor (GuideConfig.y_spike; 0 = off)
 #: the window (px) over which the anchor's noise correlation is estimated (GuideConfig.anchor_window; 0 = off)
 ANCHOR_WINDOWS = (0.0, 1.5, 3.0, 5.0)
+GUARD_PEERS = (0.0, 1.0, 2.0, 3.0, 4.0)   # the guard's speckle-field test (GuardConfig.peers; 0 = off)
 GUARD_CONFIRMS = (0.0, 2.0, 4.0)   # the guard's confirmation of ~y by a settled ~z^j (GuardConfig.confirm; 0 = off)
 #: the anchor's noise multiple k (GuideConfig.anchor_noise; larger: the anchor acts on larger gaps only)
 ANCHOR_NOISES = (0.5, 1.0, 2.0, 4.0, 8.0)
@@ -124,6 +128,7 @@ def variants(models: dict) -> dict:
             # one checkpoint setting changed at a time: (label, config, key, values, when)
             sweeps = (("y_spike", "guide", "y_spike", Y_SPIKES, net.guide.mode in ENVELOPE_MODES),
                       ("confirm", "guard", "confirm", GUARD_CONFIRMS, net.guide.mode in ENVELOPE_MODES),
+                      ("peers", "guard", "peers", GUARD_PEERS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_window", "guide", "anchor_window", ANCHOR_WINDOWS, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_noise", "guide", "anchor_noise", ANCHOR_NOISES, net.guide.mode in ENVELOPE_MODES),
                       ("anchor_settled", "guide", "anchor_settled", ANCHOR_SETTLED, net.guide.mode in ENVELOPE_MODES),
@@ -317,6 +322,11 @@ def main() -> None:
     ap.add_argument("--ref-passes", type=int, default=REF_PASSES,
                     help=f"passes of each scene reference (default {REF_PASSES}; longer ones for N = 1024)")
     ap.add_argument("--only", default=None, help="comma-separated scene keys to render (default: all five)")
+    ap.add_argument("--deep-references", action="store_true",
+                    help="score --data images against the scene's deep_reference.exr "
+                         "(benchmarks/deep_reference.py) instead of its own reference; scenes without one are left out")
+    ap.add_argument("--data-only", action="store_true",
+                    help="score the --data images only (no scene renders or references)")
     ap.add_argument("--variants", default=None,
                     help="comma-separated variant names to score (default: all; e.g. 'shipped,shipped oidn=fast')")
     args = ap.parse_args()
@@ -329,7 +339,9 @@ def main() -> None:
     names = list(fns)
     scenes = {k: args.scenes / v for k, v in LITERATURE.items()}
     scenes.update({k: k for k in BUILTIN})
-    scenes = _subset(scenes, args.only, "--only")
+    scenes = {} if args.data_only else _subset(scenes, args.only, "--only")
+    if args.data_only and not args.data:
+        sys.exit("bench_guide: --data-only needs at least one --data folder")
     refs = references(scenes, WIDTH, PHOTONS, args.ref_passes, args.ref_cache)
     scene_rows = []
     for key, (loaded, pair) in refs.items():
@@ -347,8 +359,14 @@ def main() -> None:
         for scene in load_manifest(data)["scenes"]:
             if args.split != "all" and scene.get("split") != args.split or not scene.get("reference"):
                 continue
-            ref, _ = B.read_rgb(data / scene["id"] / REFERENCE)
-            halves = [data / scene["id"] / h["file"] for h in scene.get("references", [])]
+            if args.deep_references:
+                if not (data / scene["id"] / DEEP).exists():
+                    continue
+                ref, _ = B.read_rgb(data / scene["id"] / DEEP)
+                halves = [data / scene["id"] / h for h in DEEP_HALVES]
+            else:
+                ref, _ = B.read_rgb(data / scene["id"] / REFERENCE)
+                halves = [data / scene["id"] / h["file"] for h in scene.get("references", [])]
             ref_error = (reference_error(*(B.read_rgb(h)[0] for h in halves))
                          if len(halves) == 2 and all(h.exists() for h in halves) else None)
             for item in scene.get("inputs", []):
@@ -361,7 +379,7 @@ def main() -> None:
         print(f"validation: {len(val_rows)} images", flush=True)
     report = {"models": {k: str(v) for k, v in models.items()}, "scenes": scene_rows, "validation": val_rows,
               "split": args.split,
-              "summary_scenes": summary(scene_rows, names),
+              "summary_scenes": summary(scene_rows, names) if scene_rows else [],
               "summary_validation": summary(val_rows, names) if val_rows else [],
               "minutes": (time.perf_counter() - t0) / 60}
     write_json(args.out / "guide.json", report)
@@ -371,7 +389,8 @@ def main() -> None:
         + (f" --variants '{args.variants}'" if args.variants else "") \
         + (f" --passes {args.passes}" if args.passes != "16,64,256" else "") \
         + (f" --ref-passes {args.ref_passes}" if args.ref_passes != REF_PASSES else "") \
-        + (f" --only {args.only}" if args.only else "")
+        + (f" --only {args.only}" if args.only else "") + (" --data-only" if args.data_only else "") \
+        + (" --deep-references" if args.deep_references else "")
     lines = ["# Reconstruction ablation at equal passes (issue 12)", "",
              f"Generated by `{cmd}` in {report['minutes']:.1f} min. Width {WIDTH}, {PHOTONS} photons/pass, "
              f"five-chain SPPM, seed {SEED}; references: single-bandwidth SPPM, {args.ref_passes} passes x 2 seeds "

@@ -52,6 +52,8 @@ RESHIP_NUMBERS = (
      "guide", "anchor_settled"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
+    ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
+                           "its 5 x 5 window are within 4x of it (GuardConfig.peers; 0 = off)", "guard", "peers"),
 )
 
 

@@ -395,6 +395,55 @@ def test_guard_config_validation():
         with pytest.raises(ValueError, match="confirm"):
             GuardConfig(enabled=True, confirm=bad)
     assert GuardConfig.from_dict({"enabled": True}).confirm == 0
+    for bad in (-1.0, 1.5, 25.0, float("inf")):
+        with pytest.raises(ValueError, match="peers"):
+            GuardConfig(enabled=True, peers=bad)
+    assert GuardConfig.from_dict({"enabled": True}).peers == 0
+
+
+def test_a_sparse_speckle_field_is_no_outlier_with_peers_but_a_lone_firefly_is():
+    """``GuardConfig.peers`` (issue 12, the literature cornell-box's glossy floor): on a
+    surface that photons reach rarely, ~y is a field of one-photon speckles of comparable
+    value over zeros, so each speckle's 3 x 3 median is 0 and the plain guard removes the
+    region's energy. With ``peers`` m, a candidate with m unsettled speckles within 4x of it
+    in its 5 x 5 window is kept; a lone firefly (far above every neighbour), one next to a
+    *settled* bright neighbour (a light seen directly) and one far above its speckled
+    neighbours are still caught."""
+    rng = np.random.default_rng(3)
+    h = w = 40
+    est = np.full((5, h, w, 3), 0.2, np.float32)
+    var = np.full((5, h, w), (0.01 * 0.2) ** 2, np.float32)
+    field = (slice(4, 20), slice(4, 20))                     # ~y: speckles over black
+    est[0][field] = 0.0
+    var[0][field] = 0.0
+    hits = rng.random((16, 16)) < 0.3
+    value = rng.uniform(3.0, 6.0, (16, 16)).astype(np.float32)
+    est[0][field] = np.where(hits, value, 0.0)[..., None]
+    var[0][field] = np.where(hits, value ** 2, 0.0)          # one pass each: sqrt(V) / X = 1
+    lone, settled_next, above = (30, 30), (30, 10), (11, 11)
+    est[0][lone] = 1e3
+    var[0][lone] = 1e6
+    est[0][settled_next] = 1e3
+    var[0][settled_next] = 1e6
+    est[0][30, 11] = 500.0                                  # a bright, steady neighbour
+    var[0][30, 11] = (0.01 * 500.0) ** 2
+    est[0][above] = 1e3                                     # inside the speckle field, 200x its speckles
+    var[0][above] = 1e6
+    t = lambda a: torch.from_numpy(a)[None]                 # noqa: E731
+    passes = torch.tensor([64.0])
+    args = (t(est).permute(0, 1, 4, 2, 3), t(var), passes)
+    plain = find_outliers(*args, DEFAULT_ON)[0, 0]
+    peers = find_outliers(*args, replace(DEFAULT_ON, peers=2))[0, 0]
+    speckles = torch.from_numpy(np.where(hits, 1, 0).astype(bool))
+    inner = plain[field] & speckles
+    assert int(inner.sum()) > 20                            # the plain guard takes most speckles
+    assert int((peers[field] & speckles).sum()) < int(inner.sum()) // 4
+    for r, c in (lone, settled_next, above):
+        assert bool(plain[r, c]) and bool(peers[r, c])
+    assert bool((peers <= plain).all())                      # the rule only switches replacements off
+    # consistency: with growing N the test is eventually false everywhere, peers or not
+    late = find_outliers(args[0], args[1], torch.tensor([1e12]), replace(DEFAULT_ON, peers=2))
+    assert not bool(late.any())
 
 
 def test_a_y_value_that_hit_point_b_saw_over_many_passes_is_no_outlier():

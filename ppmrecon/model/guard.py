@@ -124,6 +124,11 @@ from ..fileio import unknown_keys
 #: eps = RELATIVE_FLOOR x the image's radiance scale: the smallest radiance the guard and
 #: the scale-free features tell apart from black (a relative, not absolute, floor).
 RELATIVE_FLOOR = 1e-3
+#: :func:`speckled`: a peer is within this factor of the candidate (photons of one kind of
+#: path carry comparable power, a firefly is orders of magnitude above its neighbours).
+PEER_RATIO = 4.0
+#: :func:`speckled`'s window (pixels, odd).
+PEER_WINDOW = 5
 #: Winsorising quantile of :func:`image_scale` (a 0.1% tail of fireflies cannot set it).
 SCALE_QUANTILE = 0.999
 
@@ -225,11 +230,15 @@ class GuardConfig:
     #: sqrt(V)/Xbar below r0: many passes saw it) and at least 1/c of ~y (:func:`confirmed`);
     #: 0 = off (checkpoints without the setting read as 0)
     confirm: float = 0.0
+    #: m > 0: a candidate is no outlier where at least m other pixels of its 5 x 5 window in
+    #: the same estimate are unsettled and within :data:`PEER_RATIO` of it (:func:`speckled`:
+    #: a sparse photon speckle field, not a lone firefly); 0 = off (checkpoints without it read as 0)
+    peers: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise ValueError(f"guard setting 'enabled' must be true or false, got {self.enabled!r}")
-        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor", "confirm"):
+        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor", "confirm", "peers"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"guard setting '{key}' must be a finite number, got {value!r}")
@@ -242,6 +251,9 @@ class GuardConfig:
             raise ValueError(f"guard setting 'anchor' must be 0 (off) or a blur width > 0 in pixels, got {self.anchor}")
         if self.confirm != 0 and self.confirm <= 1:
             raise ValueError(f"guard setting 'confirm' must be 0 (off) or a factor > 1, got {self.confirm}")
+        if self.peers < 0 or self.peers != int(self.peers) or self.peers > PEER_WINDOW ** 2 - 1:
+            raise ValueError(f"guard setting 'peers' must be 0 (off) or a whole count of "
+                             f"1..{PEER_WINDOW ** 2 - 1} neighbours, got {self.peers}")
 
     def factor(self, passes: torch.Tensor) -> torch.Tensor:
         """g(N) = threshold * N^growth for pass counts (B,)."""
@@ -292,7 +304,38 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
         mask[idx] = lum[idx] > g.view(b)[idx[0]] * (med + eps.view(b)[idx[0]])
     if cfg.confirm:
         mask[:, 0] &= ~confirmed(lum, variances, cfg)
+    if cfg.peers:
+        idx = mask.nonzero(as_tuple=True)
+        if idx[0].numel():
+            mask[idx] = ~speckled(lum, variances, idx, cfg)
     return mask
+
+
+def speckled(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Tensor, ...],
+             cfg: GuardConfig) -> torch.Tensor:
+    """Which candidate pixels ``idx`` (b, k, row, col) of ``lum`` (B, 5, H, W), the
+    estimates' RGB means, sit in a sparse *speckle field*, (n,) bool: at least ``cfg.peers``
+    other pixels of the :data:`PEER_WINDOW` window of the same estimate are unsettled
+    (sqrt(V) >= r0 Xbar, :func:`settled_mask`) and within :data:`PEER_RATIO` of the candidate.
+
+    A small-bandwidth estimate on a surface that photons reach rarely (the literature
+    ``cornell-box``'s glossy floor) is a field of one-photon speckles of comparable value
+    whose 3 x 3 median is 0, so the median test takes every speckle for a firefly and the
+    region loses most of its energy (README, *Measured figures*). A firefly is a lone
+    event far above every neighbour; steady bright neighbours (a light seen directly) are
+    settled and are no peers. Keeping a pixel costs no consistency (module docstring).
+    """
+    h, w = lum.shape[-2:]
+    offs = torch.arange(PEER_WINDOW, device=lum.device) - PEER_WINDOW // 2
+    rows = idx[2][:, None] + offs.repeat_interleave(PEER_WINDOW)[None]          # (n, window^2), row-major
+    cols = idx[3][:, None] + offs.repeat(PEER_WINDOW)[None]
+    # the window's own pixels only, not the centre (padding would count a border pixel twice)
+    centre = (rows == idx[2][:, None]) & (cols == idx[3][:, None])
+    real = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w) & ~centre
+    b, k, rows, cols = idx[0][:, None], idx[1][:, None], rows.clamp(0, h - 1), cols.clamp(0, w - 1)
+    win, var = lum[b, k, rows, cols], variances[b, k, rows, cols]
+    peer = real & (win > 0) & (PEER_RATIO * win >= lum[idx][:, None]) & ~settled_mask(win, var, cfg.min_rel_error)
+    return peer.sum(1) >= cfg.peers
 
 
 def confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:
