@@ -24,7 +24,9 @@ What the guard does
    by k comparable passes ~ 1/sqrt(k), a steady pixel after N passes ~ 1/sqrt(N).
    With ``confirm`` c > 1 a pixel of ~y is also kept where a ~z^j of the same pixel
    (the independent hit point B) is settled, ``sqrt(V)/Xbar < r0``, and ``>= ~y / c``
-   (:func:`confirmed`): a small light both hit points see.
+   (:func:`confirmed`): a small light both hit points see. With ``peers`` m > 0 a pixel
+   is also kept where m unsettled pixels of its 5 x 5 window in the same estimate are
+   within 4x of it (:func:`speckled`): one speckle of a sparse field, not a lone firefly.
 2. **Low-frequency anchor**: Eq. 6 takes its low frequencies from ~y. Every term is
    ``~y_i + (~z^j_c - ~z^j_i)``; the bracket is a high-pass of ~z^j over the K x K window,
    so below the window's frequency (K = 5 in the tiny preset) the output is a weighted
