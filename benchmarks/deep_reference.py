@@ -21,6 +21,7 @@ near the regional mean is scored as a catastrophic error against a reference pix
 from __future__ import annotations
 
 import argparse
+import shutil
 import sys
 import time
 from dataclasses import asdict, replace
@@ -30,6 +31,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.cli_common import positive_int  # noqa: E402
@@ -51,15 +53,18 @@ def deep_half(data: Path, scene: dict, cfg: DataConfig, half: int) -> dict:
     path = folder / DEEP_HALVES[half]
     if path.exists():
         _, header = B.read_rgb(path)
-        return {"file": path.name, "passes": int(float(header.get(B.H_PASSES, cfg.reference_passes))),
-                "reused": True}
+        passes = int(float(header.get(B.H_PASSES, -1)))
+        if passes != cfg.reference_passes:
+            sys.exit(f"deep_reference: {path}: has {passes} passes, not --passes {cfg.reference_passes} "
+                     "(remove it, or rerun with its pass count)")
+        return {"file": path.name, "passes": passes, "reused": True}
     tmp = folder / f".deep_{half}"
     job = {"kind": "reference", "half": half, "id": scene["id"], "params": scene["params"],
            "scene_seed": scene["seed"] + DEEP_SEED_OFFSET, "folder": str(tmp), "config": asdict(cfg)}
     res = work_item(job)
     rendered = tmp / res["files"][0]["file"]
     rendered.replace(path)   # same folder tree: an atomic rename
-    tmp.rmdir()
+    shutil.rmtree(tmp, ignore_errors=True)
     return {"file": path.name, "passes": res["files"][0]["passes"], "seed": res["files"][0]["seed"],
             "seconds": res["render_seconds"]}
 
@@ -88,8 +93,10 @@ def main() -> None:
         deep = 0.5 * (a + b)
         B.write_rgb(folder / DEEP, deep.astype(np.float32), header={B.H_PASSES: str(2 * args.passes)})
         ref = B.read_rgb(folder / REFERENCE)[0] if (folder / REFERENCE).exists() else None
+        from bench_guide import reference_error   # its definition of a reference's own error
+
         agreement = {"deep halves a vs b": relmse(a, b),
-                     "deep mean's own error (|a - b|^2 / 4)": relmse(a, b) / 4}
+                     "deep mean's own error (|a - b|^2 / 4)": reference_error(a, b)["relmse"]}
         if ref is not None:
             agreement["data set reference vs deep mean"] = relmse(ref, deep)
             for name in ("reference_a.exr", "reference_b.exr"):

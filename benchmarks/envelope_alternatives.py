@@ -24,7 +24,6 @@ best single input; per variant the geometric mean and the count worse than the b
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
 from dataclasses import replace
@@ -37,11 +36,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from bench_guide import score_image, summary, table  # noqa: E402
 from deep_reference import DEEP  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
-from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint  # noqa: E402
 from ppmrecon.model.guard import anchor_low_frequencies, anchor_where_biased, band_bounds, guard_buffer  # noqa: E402
 from ppmrecon.model.guide import y_spike_mask  # noqa: E402
@@ -81,8 +80,9 @@ def variants(buf: B.BufferFile, net) -> dict[str, np.ndarray]:
         out["self anchor"] = held(anchor_low_frequencies(e, g, guard.anchor))
         x = e
         for k in range(1, max(ITERATIONS) + 1):
-            if k == 2:   # one round is the shipped envelope: the pieces here rebuild it exactly
-                assert np.allclose(x[0].permute(1, 2, 0).numpy(), out["shipped"], rtol=1e-5, atol=0), "rebuild"
+            if k == 2 and not np.allclose(x[0].permute(1, 2, 0).numpy(), out["shipped"], rtol=1e-5, atol=0):
+                # one round is the shipped envelope: the pieces here must rebuild it exactly
+                sys.exit("envelope_alternatives: the rebuilt envelope differs from denoise (infer changed?)")
             x = held(anchored(x))
             if k in ITERATIONS:
                 out[f"iterated {k}"] = x
@@ -94,12 +94,9 @@ def variants(buf: B.BufferFile, net) -> dict[str, np.ndarray]:
 
 
 def score(buf: B.BufferFile, ref: np.ndarray, net) -> dict:
-    singles = [relmse(buf.estimates[k], ref) for k in range(5)]
-    singles8 = [relmse_blocks(buf.estimates[k], ref) for k in range(5)]
-    best, best8 = min(singles), min(singles8)
-    return {"best": best, "best_name": B.ESTIMATES[int(np.argmin(singles))],
-            "variants": {k: {"ratio": relmse(v, ref) / best, "ratio_8x8": relmse_blocks(v, ref) / best8}
-                         for k, v in variants(buf, net).items()}}
+    """bench_guide's per-image score of every variant (computed once, they share the guide)."""
+    images = variants(buf, net)
+    return score_image(buf, ref, {k: (lambda _buf, v=v: v) for k, v in images.items()})
 
 
 def images(args) -> list[tuple[str, B.BufferFile, np.ndarray]]:
@@ -144,17 +141,11 @@ def main() -> None:
     names = list(rows[0]["variants"])
     lines = ["# Alternatives to the envelope's anchor and guide source (issue 12)", "",
              f"`{' '.join(sys.argv)}`, {len(rows)} images, {(time.perf_counter() - t0) / 60:.1f} min. "
-             "relMSE / 8x8-block relMSE over each image's best single input.", "",
-             "| variant | relMSE geomean | worse than best | 8x8 geomean | 8x8 worse than best |",
-             "|---|---:|---:|---:|---:|"]
-    for n in names:
-        r = np.array([row["variants"][n]["ratio"] for row in rows])
-        b = np.array([row["variants"][n]["ratio_8x8"] for row in rows])
-        lines.append(f"| {n} | {math.exp(np.log(r).mean()):.3f} | {int((r > 1).sum())} | "
-                     f"{math.exp(np.log(b).mean()):.3f} | {int((b > 1).sum())} |")
-    lines += ["", "| image | best | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
+             "relMSE / 8x8-block relMSE over each image's best single input (bench_guide.py's columns).", "",
+             *table(summary(rows, names)),
+             "", "| image | best | " + " | ".join(names) + " |", "|---|---|" + "---|" * len(names)]
     for row in rows:
-        lines.append(f"| {row['image']} | {row['best_name']} | " + " | ".join(
+        lines.append(f"| {row['image']} | {row['best_single_name']} | " + " | ".join(
             f"{row['variants'][n]['ratio']:.2f} / {row['variants'][n]['ratio_8x8']:.2f}" for n in names) + " |")
     args.out.mkdir(parents=True, exist_ok=True)
     write_json(args.out / "alternatives.json", {"rows": rows})

@@ -434,7 +434,7 @@ def test_a_sparse_speckle_field_is_no_outlier_with_peers_but_a_lone_firefly_is()
     args = (t(est).permute(0, 1, 4, 2, 3), t(var), passes)
     plain = find_outliers(*args, DEFAULT_ON)[0, 0]
     peers = find_outliers(*args, replace(DEFAULT_ON, peers=2))[0, 0]
-    speckles = torch.from_numpy(np.where(hits, 1, 0).astype(bool))
+    speckles = torch.from_numpy(hits)
     inner = plain[field] & speckles
     assert int(inner.sum()) > 20                            # the plain guard takes most speckles
     assert int((peers[field] & speckles).sum()) < int(inner.sum()) // 4

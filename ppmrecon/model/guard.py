@@ -327,16 +327,12 @@ def speckled(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Tensor
     event far above every neighbour; steady bright neighbours (a light seen directly) are
     settled and are no peers. Keeping a pixel costs no consistency (module docstring).
     """
-    h, w = lum.shape[-2:]
-    offs = torch.arange(PEER_WINDOW, device=lum.device) - PEER_WINDOW // 2
-    rows = idx[2][:, None] + offs.repeat_interleave(PEER_WINDOW)[None]          # (n, window^2), row-major
-    cols = idx[3][:, None] + offs.repeat(PEER_WINDOW)[None]
-    # the window's own pixels only, not the centre (padding would count a border pixel twice)
-    centre = (rows == idx[2][:, None]) & (cols == idx[3][:, None])
-    real = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w) & ~centre
-    b, k, rows, cols = idx[0][:, None], idx[1][:, None], rows.clamp(0, h - 1), cols.clamp(0, w - 1)
+    rows, cols, inside = _window_pixels(idx, PEER_WINDOW, *lum.shape[-2:])
+    # the window's own pixels, not the centre (a clamped border pixel would count twice)
+    inside[:, PEER_WINDOW * PEER_WINDOW // 2] = False
+    b, k = idx[0][:, None], idx[1][:, None]
     win, var = lum[b, k, rows, cols], variances[b, k, rows, cols]
-    peer = real & (win > 0) & (PEER_RATIO * win >= lum[idx][:, None]) & ~settled_mask(win, var, cfg.min_rel_error)
+    peer = inside & (win > 0) & (PEER_RATIO * win >= lum[idx][:, None]) & ~settled_mask(win, var, cfg.min_rel_error)
     return peer.sum(1) >= cfg.peers
 
 
@@ -365,15 +361,22 @@ def settled_mask(mean: torch.Tensor, variance: torch.Tensor, r0: float) -> torch
     return variance.clamp(min=0).sqrt() < r0 * mean
 
 
+def _window_pixels(idx: tuple[torch.Tensor, ...], size: int, h: int, w: int
+                   ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``size`` x ``size`` windows (row-major) around the pixels ``idx`` (b, k, row, col
+    index tensors) of an H x W image: rows and cols (n, size^2) clamped to the image
+    (replicate padding), and which of them lie inside it."""
+    offs = torch.arange(size, device=idx[2].device) - size // 2
+    rows = idx[2][:, None] + offs.repeat_interleave(size)[None]
+    cols = idx[3][:, None] + offs.repeat(size)[None]
+    inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
+    return rows.clamp(0, h - 1), cols.clamp(0, w - 1), inside
+
+
 def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
     """3 x 3 medians (replicate padding) of x (B, 5, C, H, W) at the pixels ``idx`` (b, k,
     row, col index tensors), (n, C); only those windows are gathered."""
-    h, w = x.shape[-2:]
-    offs = torch.arange(-1, 2, device=x.device)
-    rr = (idx[2][:, None] + offs).clamp(0, h - 1)                       # (n, 3)
-    cc = (idx[3][:, None] + offs).clamp(0, w - 1)
-    r9 = rr[:, :, None].expand(-1, 3, 3).reshape(-1, 9)
-    c9 = cc[:, None, :].expand(-1, 3, 3).reshape(-1, 9)
+    r9, c9, _ = _window_pixels(idx, 3, *x.shape[-2:])
     win = x[idx[0][:, None], idx[1][:, None], :, r9, c9]               # (n, 9, C)
     return win.median(dim=1).values
 
