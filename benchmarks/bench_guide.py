@@ -292,6 +292,39 @@ def family_table(rows: list[dict], names: list[str]) -> list[str]:
     return lines
 
 
+def combined_variants(models: dict, chosen: str | None) -> dict:
+    """The requested variants ``NAME key=value [key=value ...]`` that no sweep makes: checkpoint
+    NAME as shipped with several guide (:class:`GuideConfig`) or guard (:class:`GuardConfig`)
+    settings changed together, e.g. ``shipped anchor_source=4 y_weight=1``. A key of neither
+    config, or a value it refuses, stops the benchmark with one line."""
+    from dataclasses import fields
+
+    from ppmrecon.model.checkpoint import load_checkpoint
+    from ppmrecon.model.guard import DEFAULT_ON
+    from ppmrecon.model.infer import denoise
+
+    out = {}
+    for name in [v.strip() for v in (chosen or "").split(",")]:
+        head, *pairs = name.split()
+        if head not in models or not pairs or not all("=" in p for p in pairs):
+            continue
+        net = load_checkpoint(models[head]).model
+        guide, guard = net.guide, net.guard if net.guard.enabled else DEFAULT_ON
+        for key, value in (p.split("=", 1) for p in pairs):
+            which = "guide" if key in {f.name for f in fields(guide)} else "guard" if key in {
+                f.name for f in fields(guard)} else None
+            if which is None:
+                sys.exit(f"bench_guide: --variants '{name}': '{key}' is no guide or guard setting")
+            base = guide if which == "guide" else guard
+            try:
+                cfg = replace(base, **{key: type(getattr(base, key))(value)})
+            except (TypeError, ValueError) as exc:
+                sys.exit(f"bench_guide: --variants '{name}': {exc}")
+            guide, guard = (cfg, guard) if which == "guide" else (guide, cfg)
+        out[name] = lambda buf, net=net, g=guide, gd=guard: denoise(buf, net, guard=gd, guide=g).rgb
+    return out
+
+
 def _subset(items: dict, chosen: str | None, option: str) -> dict:
     """The entries of ``items`` named in the comma-separated ``chosen`` (all if None);
     an unknown name stops the benchmark with one line."""
@@ -335,6 +368,7 @@ def main() -> None:
     args.ref_cache.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     fns = variants(models)
+    fns.update(combined_variants(models, args.variants))
     fns = _subset(fns, args.variants, "--variants")
     names = list(fns)
     scenes = {k: args.scenes / v for k, v in LITERATURE.items()}
