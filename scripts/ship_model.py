@@ -50,11 +50,16 @@ RESHIP_NUMBERS = (
     ("--guide-anchor-settled", "R", "ship with the anchor acting only where its low-pass is settled, its "
                                     "standard deviation below R x its level (GuideConfig.anchor_settled; 0 = off)",
      "guide", "anchor_settled"),
+    ("--guide-anchor-source", "M", "ship with the envelope's low-frequency anchor aimed at ~z^M, M = 1..4 "
+                                   "(GuideConfig.anchor_source)", "guide", "anchor_source"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
                            "its 5 x 5 window are within 4x of it (GuardConfig.peers; 0 = off)", "guard", "peers"),
 )
+
+#: Settings of :data:`RESHIP_NUMBERS` that are indices, not numbers: parsed as integers.
+INTEGER_KEYS = frozenset({"anchor_source"})
 
 
 def reship_values(args: argparse.Namespace, config: str) -> list[tuple[str, float, str]]:
@@ -93,8 +98,8 @@ def main() -> None:
     ap.add_argument("--chooser", type=Path, default=None, metavar="CKPT",
                     help="attach the chooser of this `ppmrecon-train chooser` result (its chooser.pt) and "
                          "ship in guide mode 'chooser'")
-    for flag, metavar, text, _, _ in RESHIP_NUMBERS:
-        ap.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
+    for flag, metavar, text, _, key in RESHIP_NUMBERS:
+        ap.add_argument(flag, type=int if key in INTEGER_KEYS else float, default=None, metavar=metavar, help=text)
     args = ap.parse_args()
     if args.run is None:
         reship(args)

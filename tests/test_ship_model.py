@@ -158,3 +158,18 @@ def test_reship_attaches_a_chooser_trained_on_this_default(ship_model, tmp_path,
     C.save_checkpoint(tmp_path / "other.pt", other)
     with pytest.raises(SystemExit, match="another guard or guide"):
         _run(ship_model, monkeypatch, "--chooser", str(tmp_path / "other.pt"))
+
+
+def test_reship_aims_the_anchor_at_another_estimate(ship_model, tmp_path, monkeypatch):
+    before = C.load_checkpoint(tmp_path / "default.pt")
+    _run(ship_model, monkeypatch, "--guide-anchor-source", "4", "--guide-y-weight", "1")
+    after = C.load_checkpoint(tmp_path / "default.pt")
+    assert after.model.guide == replace(before.model.guide, anchor_source=4, y_weight=1.0)
+    assert type(after.model.guide.anchor_source) is int           # an index of the ~z^j, not 4.0
+    card = (tmp_path / "default.md").read_text()
+    assert "~z^4 where they differ by more than its noise" in card
+    assert "--guide-anchor-source 4 --guide-y-weight 1" in card or "--guide-y-weight 1 --guide-anchor-source 4" in card
+    with pytest.raises(SystemExit, match="--guide-anchor-source"):
+        _run(ship_model, monkeypatch, "--guide-anchor-source", "5")
+    with pytest.raises(SystemExit):                               # not an index: argparse refuses it
+        _run(ship_model, monkeypatch, "--guide-anchor-source", "2.5")
