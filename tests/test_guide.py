@@ -118,6 +118,12 @@ def test_guide_settings_are_validated():
         with pytest.raises(ValueError, match="anchor_settled"):
             GuideConfig(anchor_settled=bad)
     assert GuideConfig.from_dict({}).anchor_settled == 0
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="anchor_select"):
+            GuideConfig(anchor_select=bad)
+    with pytest.raises(ValueError, match="anchor_select.*wider"):
+        GuideConfig(anchor_select=1.0, anchor_source=4)
+    assert GuideConfig.from_dict({}).anchor_select == 0
 
 
 def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
@@ -305,6 +311,31 @@ def test_envelope_returns_the_estimates_when_they_agree():
     buf = replace(buf, estimates=same)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
     np.testing.assert_array_equal(denoise(buf, model).rgb, same[0])
+
+
+def test_anchor_target_takes_the_wider_estimate_where_the_low_passes_agree():
+    """anchor_select: the aim is ~z^(m+1) (and its variance) where its low-pass agrees with
+    ~z^m's, ~z^m where they differ far beyond ~z^m's noise, between the two elsewhere; off,
+    it is ~z^m; the envelope with it returns converged inputs exactly."""
+    from ppmrecon.model.guide import anchor_target
+
+    z = torch.full((1, 4, 3, 16, 16), 1.0)
+    v3, v4 = torch.full((1, 1, 16, 16), 1e-2), torch.full((1, 1, 16, 16), 1e-3)
+    z[:, 3, :, :, 10:] = 3.0                               # ~z^4's bandwidth bias on the right, 2 >> sqrt(1e-2)
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=1.0)
+    t, v = anchor_target(z, v3, v4, on, 1.5)
+    assert torch.equal(t[..., :4], z[:, 3, :, :, :4]) and torch.equal(v[..., :4], v4[..., :4])
+    assert torch.allclose(t[..., 14:], z[:, 2, :, :, 14:], rtol=0, atol=1e-2)
+    assert torch.allclose(v[..., 14:], v3[..., 14:], rtol=0, atol=1e-4)
+    assert bool(((t >= 1.0) & (t <= 3.0)).all())              # a convex combination of the two
+    t0, v0 = anchor_target(z, v3, None, replace(on, anchor_select=0.0), 1.5)
+    assert torch.equal(t0, z[:, 2]) and v0 is v3
+    with pytest.raises(ValueError, match="wider estimate's variance"):
+        anchor_target(z, v3, None, on, 1.5)
+    buf = make_buffer(24, 24, seed=12)
+    same = np.repeat(buf.estimates[4:5], 5, axis=0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
 
 
 def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood(monkeypatch):

@@ -162,6 +162,11 @@ class GuideConfig:
     #: photon's plateau under a wide kernel is not taken for a low-frequency reference;
     #: 0 = off (checkpoints without the setting read as 0)
     anchor_settled: float = 0.0
+    #: envelope modes: > 0 aims the anchor per pixel between ~z^m and the next wider
+    #: ~z^(m+1) (:func:`anchor_target`): the wider, less noisy one where the two low-passes
+    #: agree within this factor k times ~z^m's low-pass variance, ~z^m where the wider one's
+    #: bandwidth bias shows; 0 = ~z^m alone (checkpoints without the setting read as 0)
+    anchor_select: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -201,6 +206,13 @@ class GuideConfig:
                 or not math.isfinite(self.anchor_settled) or self.anchor_settled < 0:
             raise ValueError("guide setting 'anchor_settled' must be a ratio >= 0 (0 = off), "
                              f"got {self.anchor_settled!r}")
+        if isinstance(self.anchor_select, bool) or not isinstance(self.anchor_select, (int, float)) \
+                or not math.isfinite(self.anchor_select) or self.anchor_select < 0:
+            raise ValueError("guide setting 'anchor_select' must be a factor >= 0 (0 = off), "
+                             f"got {self.anchor_select!r}")
+        if self.anchor_select and self.anchor_source == 4:
+            raise ValueError("guide setting 'anchor_select' needs a wider estimate than the anchor's: "
+                             "anchor_source must be 1..3")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -385,17 +397,50 @@ def guide_planes(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     return planes(g, cfg, scale, floor)
 
 
+def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance: torch.Tensor | None,
+                  cfg: GuideConfig, sigma: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The envelope's anchor aim and its variance of the mean, (B, 3, H, W) and (B, 1, H, W):
+    ~z^m (m = ``cfg.anchor_source``) itself, or with ``cfg.anchor_select`` k a per-pixel
+    convex combination of ~z^m and the next wider ~z^(m+1) (``wider_variance`` its variance):
+
+        w = |D|^2 / (|D|^2 + k Var(G_sigma * ~z^m)),   D = G_sigma * (~z^(m+1) - ~z^m)
+        t = ~z^(m+1) + w (~z^m - ~z^(m+1)),           V_t = V_(m+1) + w (V_m - V_(m+1))
+
+    (|D|^2 the mean over R, G, B; Var from :func:`.guard.lowpass_variance`). The wider
+    estimate's low-pass is less noisy (its photon plateaus average over more photons, e.g.
+    ``texture_leaks``' blotches), but carries more bandwidth bias next to caustics and light
+    leaks; where the two low-passes differ by more than ~z^m's noise, that bias shows and
+    the aim returns to ~z^m. Consistent: t lies between two estimates that converge to x_c.
+    V_t is the same convex combination of the variances (an upper bound of t's variance by
+    convexity for w fixed; w depends on the noise only through D)."""
+    from .guard import gaussian_lowpass, lowpass_variance
+
+    m = cfg.anchor_source
+    if not cfg.anchor_select:
+        return z[:, m - 1], anchor_variance
+    if wider_variance is None:
+        raise ValueError("anchor_target: the guide's anchor_select needs the wider estimate's variance")
+    narrow, wide = z[:, m - 1], z[:, m]
+    d2 = gaussian_lowpass(wide - narrow, sigma).square().mean(1, keepdim=True)
+    noise = cfg.anchor_select * lowpass_variance(anchor_variance.clamp(min=0.0), sigma)
+    w = torch.where(d2 > 0, d2 / (d2 + noise).clamp(min=torch.finfo(d2.dtype).tiny), torch.zeros_like(d2))
+    return torch.lerp(wide, narrow, w), torch.lerp(wider_variance, anchor_variance, w)
+
+
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
-             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0) -> torch.Tensor:
+             guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
+             wider_variance: torch.Tensor | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
-        e'  = e + a G_sigma * (~z^m - e)                          (:func:`.guard.anchor_where_biased`)
+        e'  = e + a G_sigma * (t - e)                             (:func:`.guard.anchor_where_biased`)
         out = clamp(e', min_k X_{k,c}, max_k X_{k,c})
 
     ``guide`` (B, 4, H, W) the planes of :func:`guide_planes` (only R, G, B are used), y
     (B, 3, H, W) and z (B, 4, 3, H, W) the guarded inputs, ``anchor_variance`` (B, 1, H, W)
-    the variance of the mean of ~z^m, m = ``cfg.anchor_source``; sigma = ``guard.anchor``
+    the variance of the mean of ~z^m, m = ``cfg.anchor_source``, t = ~z^m or, with
+    ``cfg.anchor_select``, the per-pixel aim of :func:`anchor_target` between ~z^m and
+    ~z^(m+1) (``wider_variance`` the latter's variance); sigma = ``guard.anchor``
     (0: no anchor), k = ``cfg.anchor_noise``; the range widened by the guard's band h when
     h > 1; with ``cfg.y_spike`` the range of the ~z^j alone where ~y is a lone spike
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
@@ -416,7 +461,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
-        held = anchor_where_biased(held, z[:, cfg.anchor_source - 1], anchor_variance, guard.anchor, cfg.anchor_noise,
+        target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
+        held = anchor_where_biased(held, target, target_variance, guard.anchor, cfg.anchor_noise,
                                    cfg.anchor_window, cfg.anchor_settled)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
