@@ -52,6 +52,9 @@ RESHIP_NUMBERS = (
      "guide", "anchor_settled"),
     ("--guide-anchor-source", "M", "ship with the envelope's low-frequency anchor aimed at ~z^M, M = 1..4 "
                                    "(GuideConfig.anchor_source)", "guide", "anchor_source"),
+    ("--guide-anchor-select", "K", "ship with the envelope's anchor aimed per pixel between ~z^m and the wider "
+                                   "~z^(m+1), at the wider one where their low-passes agree within K x ~z^m's "
+                                   "noise (GuideConfig.anchor_select; 0 = off)", "guide", "anchor_select"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -276,7 +279,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
                if guide.y_spike else "")
             + ", anchored at low frequencies to "
-            f"~z^{guide.anchor_source} where they differ by more than its noise"
+            + (f"~z^{guide.anchor_source + 1}, or ~z^{guide.anchor_source} where the two low-passes differ by more "
+               f"than {guide.anchor_select:g} x its noise," if guide.anchor_select else f"~z^{guide.anchor_source}")
+            + " where they differ by more than its noise"
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"
                if guide.anchor_settled else "")

@@ -586,6 +586,24 @@ def test_cli_and_api_guide_anchor_settled(tmp_path, capsys):
         ppmrecon.denoise(buf, tmp_path / "m.pt", guide_anchor_settled=-0.5)
 
 
+def test_cli_and_api_guide_anchor_select(tmp_path, capsys):
+    """--guide-anchor-select / guide_anchor_select= aim the anchor between ~z^3 and ~z^4 (the
+    header says it; CLI and API agree; 0 turns it off); negative or not a number: one clear
+    line, exit 2, no output."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=17)
+    args = _envelope_cli(tmp_path, buf)
+    _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "4", " select=4", guide_anchor_select=4.0)
+    _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "0", "y=0", guide_anchor_select=0.0)
+    for bad in ("-1", "nan"):
+        assert denoise_main(args + ["--guide-anchor-select", bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert "--guide-anchor-select" in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
+    with pytest.raises(UsageError, match="guide_anchor_select"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_anchor_select=-0.5)
+
+
 def test_training_refuses_the_envelope_mode(tmp_path):
     """The envelope runs no network: a training config asking for it is one clear error
     (before any data is read)."""

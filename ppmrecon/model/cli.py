@@ -115,6 +115,10 @@ def build_parser() -> ArgumentParser:
                         "standard deviation below R x its level (helps next to small bright emitters, "
                         "costs the glossy Cornell box's low frequencies; README); 0 = off (default: the "
                         "checkpoint's; the shipped model's 0)")
+    p.add_argument("--guide-anchor-select", type=float, default=None, metavar="K",
+                   help="envelope modes: aim the anchor per pixel between ~z^3 and the wider ~z^4, at "
+                        "~z^4 where their low-passes agree within K x ~z^3's noise; 0 = ~z^3 alone "
+                        "(default: the checkpoint's; the shipped model's 4)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -214,6 +218,11 @@ def with_guide_anchor_settled(guide: GuideConfig, ratio: float | None, option: s
     return _with_guide_number(guide, "anchor_settled", ratio, option, switch)
 
 
+def with_guide_anchor_select(guide: GuideConfig, k: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``anchor_select`` = ``k`` (None: unchanged), as :func:`with_guide_y_weight`."""
+    return _with_guide_number(guide, "anchor_select", k, option, switch)
+
+
 def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
     if value is None:
         return guide
@@ -293,6 +302,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
     guide = with_guide_y_spike(guide, args.guide_y_spike, "--guide-y-spike", "--guide")
     guide = with_guide_anchor_settled(guide, args.guide_anchor_settled, "--guide-anchor-settled", "--guide")
+    guide = with_guide_anchor_select(guide, args.guide_anchor_select, "--guide-anchor-select", "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -342,8 +352,9 @@ def _guide_header(guide: GuideConfig) -> str:
            else f"beta={guide.beta:g}")
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
+    select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
-            f"y={guide.y_weight:g}{spike}{settled}")
+            f"y={guide.y_weight:g}{spike}{settled}{select}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
