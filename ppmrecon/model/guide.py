@@ -165,7 +165,8 @@ class GuideConfig:
     #: envelope modes: > 0 aims the anchor per pixel between ~z^m and the next wider
     #: ~z^(m+1) (:func:`anchor_target`): the wider, less noisy one where the two low-passes
     #: agree within this factor k times ~z^m's low-pass variance, ~z^m where the wider one's
-    #: bandwidth bias shows; 0 = ~z^m alone (checkpoints without the setting read as 0)
+    #: bandwidth bias shows; 0 = ~z^m alone, as with m = 4 (no wider estimate; checkpoints
+    #: without the setting read as 0)
     anchor_select: float = 0.0
 
     def __post_init__(self) -> None:
@@ -210,9 +211,6 @@ class GuideConfig:
                 or not math.isfinite(self.anchor_select) or self.anchor_select < 0:
             raise ValueError("guide setting 'anchor_select' must be a factor >= 0 (0 = off), "
                              f"got {self.anchor_select!r}")
-        if self.anchor_select and self.anchor_source == 4:
-            raise ValueError("guide setting 'anchor_select' needs a wider estimate than the anchor's: "
-                             "anchor_source must be 1..3")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -416,7 +414,7 @@ def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance
     from .guard import gaussian_lowpass, lowpass_variance
 
     m = cfg.anchor_source
-    if not cfg.anchor_select:
+    if not cfg.anchor_select or m == z.shape[1]:         # off, or no wider estimate than ~z^4
         return z[:, m - 1], anchor_variance
     if wider_variance is None:
         raise ValueError("anchor_target: the guide's anchor_select needs the wider estimate's variance")
