@@ -279,8 +279,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
                if guide.y_spike else "")
             + ", anchored at low frequencies to "
-            + (f"~z^{guide.anchor_source + 1}, or ~z^{guide.anchor_source} where the two low-passes differ by more "
-               f"than {guide.anchor_select:g} x its noise," if guide.anchor_select else f"~z^{guide.anchor_source}")
+            + (f"~z^{guide.anchor_source + 1} where its low-pass agrees with ~z^{guide.anchor_source}'s within "
+               f"{guide.anchor_select:g} x the latter's noise, else to ~z^{guide.anchor_source} (per pixel),"
+               if guide.anchor_select and guide.anchor_source < 4 else f"~z^{guide.anchor_source}")
             + " where they differ by more than its noise"
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"

@@ -521,6 +521,20 @@ def _cli_and_api_agree(tmp_path, buf, args: list[str], flag: str, value: str, he
     return image
 
 
+def _refuses_negative_and_nan(tmp_path, capsys, buf, args: list[str], flag: str) -> None:
+    """``FLAG -1`` and ``FLAG nan`` on the command line, and -0.5 through ``ppmrecon.denoise``'s
+    keyword of the same name: one line naming the option, exit 2, no output."""
+    import ppmrecon
+
+    for bad in ("-1", "nan"):
+        assert denoise_main(args + [flag, bad, "-o", str(tmp_path / "x.exr")]) == 2
+        assert flag in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
+    keyword = flag[2:].replace("-", "_")
+    with pytest.raises(UsageError, match=keyword):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", **{keyword: -0.5})
+
+
 def test_cli_and_api_guide_y_weight(tmp_path, capsys):
     """--guide-y-weight / guide_y_weight= set the weight of OIDN's image of ~y in the guide
     (the header says it); negative or not a number, or with the guide off: one clear line, exit 2."""
@@ -571,37 +585,25 @@ def test_cli_and_api_guide_y_spike(tmp_path, capsys):
 def test_cli_and_api_guide_anchor_settled(tmp_path, capsys):
     """--guide-anchor-settled / guide_anchor_settled= switch the settled anchor on (the header
     says it; CLI and API agree); negative or not a number: one clear line, exit 2, no output."""
-    import ppmrecon
-
     buf = make_buffer(24, 24, seed=16)
     args = _envelope_cli(tmp_path, buf)
     _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-settled", "0.5", " settled=0.5", guide_anchor_settled=0.5)
     assert denoise_main(args + ["-o", str(tmp_path / "p.exr")]) == 0
     assert "settled" not in B.read_rgb(tmp_path / "p.exr")[1]["ppmrecon.guide"]
-    for bad in ("-1", "nan"):
-        assert denoise_main(args + ["--guide-anchor-settled", bad, "-o", str(tmp_path / "x.exr")]) == 2
-        assert "--guide-anchor-settled" in capsys.readouterr().err
-    assert not (tmp_path / "x.exr").exists()
-    with pytest.raises(UsageError, match="guide_anchor_settled"):
-        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_anchor_settled=-0.5)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-settled")
 
 
 def test_cli_and_api_guide_anchor_select(tmp_path, capsys):
     """--guide-anchor-select / guide_anchor_select= aim the anchor between ~z^3 and ~z^4 (the
     header says it; CLI and API agree; 0 turns it off); negative or not a number: one clear
     line, exit 2, no output."""
-    import ppmrecon
-
     buf = make_buffer(24, 24, seed=17)
     args = _envelope_cli(tmp_path, buf)
-    _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "4", " select=4", guide_anchor_select=4.0)
-    _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "0", "y=0", guide_anchor_select=0.0)
-    for bad in ("-1", "nan"):
-        assert denoise_main(args + ["--guide-anchor-select", bad, "-o", str(tmp_path / "x.exr")]) == 2
-        assert "--guide-anchor-select" in capsys.readouterr().err
-    assert not (tmp_path / "x.exr").exists()
-    with pytest.raises(UsageError, match="guide_anchor_select"):
-        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_anchor_select=-0.5)
+    aimed = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "4", " select=4",
+                               guide_anchor_select=4.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "0", "y=0", guide_anchor_select=0.0)
+    assert not np.array_equal(aimed, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-select")
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

@@ -167,8 +167,11 @@ def test_reship_aims_the_anchor_at_another_estimate(ship_model, tmp_path, monkey
     assert after.model.guide == replace(before.model.guide, anchor_source=4, y_weight=1.0)
     assert type(after.model.guide.anchor_source) is int           # an index of the ~z^j, not 4.0
     card = (tmp_path / "default.md").read_text()
-    assert "~z^4 where they differ by more than its noise" in card
+    assert "anchored at low frequencies to ~z^4 where they differ by more than its noise" in card
     assert "--guide-anchor-source 4 --guide-y-weight 1" in card or "--guide-y-weight 1 --guide-anchor-source 4" in card
+    _run(ship_model, monkeypatch, "--guide-anchor-source", "3", "--guide-anchor-select", "4")
+    card = (tmp_path / "default.md").read_text()
+    assert "to ~z^4 where its low-pass agrees with ~z^3's within 4 x the latter's noise, else to ~z^3" in card
     with pytest.raises(SystemExit, match="--guide-anchor-source"):
         _run(ship_model, monkeypatch, "--guide-anchor-source", "5")
     with pytest.raises(SystemExit):                               # not an index: argparse refuses it

@@ -116,9 +116,9 @@ def build_parser() -> ArgumentParser:
                         "costs the glossy Cornell box's low frequencies; README); 0 = off (default: the "
                         "checkpoint's; the shipped model's 0)")
     p.add_argument("--guide-anchor-select", type=float, default=None, metavar="K",
-                   help="envelope modes: aim the anchor per pixel between ~z^3 and the wider ~z^4, at "
-                        "~z^4 where their low-passes agree within K x ~z^3's noise; 0 = ~z^3 alone "
-                        "(default: the checkpoint's; the shipped model's 4)")
+                   help="envelope modes: aim the anchor per pixel between its ~z^m (the shipped ~z^3) and "
+                        "the wider ~z^(m+1), at the wider one where their low-passes agree within K x "
+                        "~z^m's noise; 0 = ~z^m alone (default: the checkpoint's; the shipped model's 4)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")

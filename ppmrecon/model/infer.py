@@ -257,13 +257,16 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
     device = torch.device(device)
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
-    variance, wider = (torch.from_numpy(np.ascontiguousarray(buf.variances[k], np.float32))[None, None].to(device)
-                       for k in (guide.anchor_source, min(guide.anchor_source + 1, len(buf.variances) - 1)))
+    def variance_of(k: int) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(buf.variances[k], np.float32))[None, None].to(device)
+
+    m = guide.anchor_source
+    wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
     if guide.y_spike and scale is None:
         scale = _scale(buf)
     with torch.no_grad():
-        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance, guard, guide, scale or 0.0,
-                         wider if guide.anchor_select else None)
+        image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
+                         wider)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
