@@ -8,7 +8,8 @@ range of each pixel's five guarded estimates, :func:`ppmrecon.model.guard.anchor
 so that only the named step differs from ``ppmrecon.model.infer.denoise``:
 
 * ``shipped``: ``denoise`` itself (the envelope: guide g clamped into the range, anchored to
-  ~z^3's low frequencies where the gap exceeds their noise, clamped again);
+  the low frequencies of its aim (~z^3, or per pixel towards ~z^4: ``guide.anchor_target``)
+  where the gap exceeds their noise, clamped again);
 * ``self anchor``: the anchor's target is g itself, ``e + G_sigma * (g - e)``: it returns the
   low frequencies that the clamp took from the guide, nothing of ~z^3's noise;
 * ``iterated K``: the anchor and the clamp repeated K times (alternating projections onto the
@@ -43,7 +44,7 @@ from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint  # noqa: E402
 from ppmrecon.model.guard import anchor_low_frequencies, anchor_where_biased, band_bounds, guard_buffer  # noqa: E402
-from ppmrecon.model.guide import y_spike_mask  # noqa: E402
+from ppmrecon.model.guide import anchor_target, y_spike_mask  # noqa: E402
 from ppmrecon.model.infer import _scale, buffer_guide_images, denoise  # noqa: E402
 from ppmrecon.train.datagen import REFERENCE, load_manifest  # noqa: E402
 
@@ -64,14 +65,20 @@ def variants(buf: B.BufferFile, net) -> dict[str, np.ndarray]:
     scale = _scale(g_buf)
     est = torch.from_numpy(np.ascontiguousarray(g_buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
     y, z = est[:, 0], est[:, 1:]
-    var = torch.from_numpy(np.ascontiguousarray(g_buf.variances[guide.anchor_source], np.float32))[None, None]
+    def variance_of(k: int) -> torch.Tensor:
+        return torch.from_numpy(np.ascontiguousarray(g_buf.variances[k], np.float32))[None, None]
+
+    m = guide.anchor_source
+    # the anchor's aim as the shipped envelope takes it (~z^m, or per pixel towards ~z^(m+1))
+    target, var = anchor_target(z, variance_of(m), variance_of(m + 1) if m < z.shape[1] else None, guide,
+                                guard.anchor)
     lo, hi = band_bounds(y, z, 1.0, y_spike_mask(y, z, guide, guard, scale))
 
     def held(x: torch.Tensor) -> torch.Tensor:
         return torch.minimum(torch.maximum(x, lo), hi)
 
     def anchored(x: torch.Tensor) -> torch.Tensor:
-        return anchor_where_biased(x, z[:, guide.anchor_source - 1], var, guard.anchor, guide.anchor_noise,
+        return anchor_where_biased(x, target, var, guard.anchor, guide.anchor_noise,
                                    guide.anchor_window, guide.anchor_settled)
 
     g = buffer_guide_images(g_buf, guide, guard, scale)[0].guide[None]
