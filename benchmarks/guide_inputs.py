@@ -21,7 +21,10 @@ the range). Variants:
 * ``lightmap``: OIDN's ``RTLightmap`` filter (no albedo / normal) for both images;
   ``lightmap z4`` / ``lightmap y``: for that image only; ``lowmix S half``: RT's image of
   ~z^4 with the low frequencies (Gaussian S px) of RTLightmap's image of ~z^4 at half resolution;
-* ``high``: both OIDN images at quality ``high``; ``high z4``: ~z^4's only.
+* ``high``: both OIDN images at quality ``high``; ``high z4``: ~z^4's only;
+* ``terms K`` (the one variant that changes the range, not the guide): each pixel's range
+  widened to the terms of paper 002 Eq. 6 over a K x K window, ``~y_i + ~z^j_c - ~z^j_i`` for
+  every j and i (each converges to x_c, so the envelope stays consistent); the shipped guide.
 
 Per image: relMSE / 8x8-block relMSE over the best single input (``bench_guide.score_image``);
 per group (study, data, N, family) the geometric means and the count worse than the best input.
@@ -48,6 +51,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from bench_guide import PHOTONS, SEED, WIDTH, score_image  # noqa: E402
 from study import REF_SEEDS, ref_path  # noqa: E402
 
+import ppmrecon.model.guard as guard_module  # noqa: E402
 import ppmrecon.model.guide as guide_module  # noqa: E402
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
@@ -59,7 +63,7 @@ from ppmrecon.model.infer import _scale, buffer_envelope, buffer_guide_images, d
 from ppmrecon.train.datagen import REFERENCE, load_manifest  # noqa: E402
 
 VARIANTS = ("shipped", "pre 2", "pre 1", "swap 2", "swap 4", "swap 2 raw", "clean_aux", "lightmap",
-            "lightmap z4", "lightmap y", "lowmix 2 half", "high", "high z4")
+            "lightmap z4", "lightmap y", "lowmix 2 half", "high", "high z4", "terms 3", "terms 5")
 Oidn = Callable[..., np.ndarray]
 
 
@@ -93,6 +97,22 @@ def lowmix(sigma: float) -> Oidn:
                            mode="bilinear", align_corners=False)[0, :, :h, :w]
         return (full + gaussian_lowpass((lm - full)[None], sigma)[0]).clamp(min=0).permute(1, 2, 0).numpy()
     return fn
+
+
+def terms_bounds(k: int) -> Callable:
+    """``guard.band_bounds`` widened to Eq. 6's terms over a k x k window (replicate padding):
+    for each j, ``~z^j_c + min_i (~y_i - ~z^j_i)`` and ``~z^j_c + max_i (~y_i - ~z^j_i)``."""
+    shipped_bounds = guard_module.band_bounds
+
+    def bounds(y, z, band, y_out=None):
+        lo, hi = shipped_bounds(y, z, band, y_out)
+        pad = (k // 2,) * 4
+        for j in range(z.shape[1]):
+            zj = z[:, j]
+            lo = torch.minimum(lo, zj - F.max_pool2d(F.pad(zj - y, pad, mode="replicate"), k, 1))
+            hi = torch.maximum(hi, zj + F.max_pool2d(F.pad(y - zj, pad, mode="replicate"), k, 1))
+        return lo.clamp(min=0.0), hi
+    return bounds
 
 
 def per_call(*fns: Oidn) -> Oidn:
@@ -139,6 +159,14 @@ def variants(buf: B.BufferFile, net, names: tuple[str, ...]) -> dict[str, np.nda
         for name in names:
             kind, *arg = name.split(" ")
             if name == "shipped":
+                continue
+            if kind == "terms":
+                shipped_bounds = guard_module.band_bounds
+                guard_module.band_bounds = terms_bounds(int(arg[0]))
+                try:
+                    out[name] = denoise(buf, net).rgb
+                finally:
+                    guard_module.band_bounds = shipped_bounds
                 continue
             if kind == "pre":
                 g = oidn(torch.lerp(source, y, y_share(gb.variances, guide.source, float(arg[0]))))
@@ -226,7 +254,7 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "guide_inputs")
     args = ap.parse_args()
     names = tuple(v.strip() for v in args.variants.split(",") if v.strip())
-    unknown = [n for n in names if n not in VARIANTS and not n.split(" ")[0] in ("pre", "swap", "lowmix")]
+    unknown = [n for n in names if n not in VARIANTS and n.split(" ")[0] not in ("pre", "swap", "lowmix", "terms")]
     if unknown:
         sys.exit(f"guide_inputs: --variants: unknown {', '.join(unknown)} (have: {', '.join(VARIANTS)})")
     names = ("shipped",) + tuple(n for n in names if n != "shipped")
