@@ -24,7 +24,10 @@ the range). Variants:
 * ``high``: both OIDN images at quality ``high``; ``high z4``: ~z^4's only;
 * ``terms K`` (the one variant that changes the range, not the guide): each pixel's range
   widened to the terms of paper 002 Eq. 6 over a K x K window, ``~y_i + ~z^j_c - ~z^j_i`` for
-  every j and i (each converges to x_c, so the envelope stays consistent); the shipped guide.
+  every j and i (each converges to x_c, so the envelope stays consistent); the shipped guide;
+  ``terms K S``: widened only the share S of the way; ``terms K nM``: the share 1 / (1 + N / M)
+  for a render of N passes (all the way at few passes, little at many); ``... cap``: each end
+  moved out by at most the shipped range's width.
 
 Per image: relMSE / 8x8-block relMSE over the best single input (``bench_guide.score_image``);
 per group (study, data, N, family) the geometric means and the count worse than the best input.
@@ -57,7 +60,7 @@ from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint  # noqa: E402
 from ppmrecon.model.guard import (correlated_lowpass_variance, gaussian_lowpass, guard_buffer,  # noqa: E402
-                                  lowpass_variance, noise_correlation)
+                                  lowpass_variance, noise_correlation, passes_of)
 from ppmrecon.model.guide import despike, oidn_image, planes, y_share  # noqa: E402
 from ppmrecon.model.infer import _scale, buffer_envelope, buffer_guide_images, denoise  # noqa: E402
 from ppmrecon.train.datagen import REFERENCE, load_manifest  # noqa: E402
@@ -99,19 +102,26 @@ def lowmix(sigma: float) -> Oidn:
     return fn
 
 
-def terms_bounds(k: int) -> Callable:
+def terms_bounds(k: int, share: float = 1.0, cap: bool = False) -> Callable:
     """``guard.band_bounds`` widened to Eq. 6's terms over a k x k window (replicate padding):
-    for each j, ``~z^j_c + min_i (~y_i - ~z^j_i)`` and ``~z^j_c + max_i (~y_i - ~z^j_i)``."""
+    for each j, ``~z^j_c + min_i (~y_i - ~z^j_i)`` and ``~z^j_c + max_i (~y_i - ~z^j_i)``; with
+    ``share`` < 1 only that fraction of the way from the shipped ends to the terms' ends; with
+    ``cap`` each end moves out by at most the shipped range's width (a ~y spike in the window
+    would otherwise widen it by the spike's whole height)."""
     shipped_bounds = guard_module.band_bounds
 
     def bounds(y, z, band, y_out=None):
-        lo, hi = shipped_bounds(y, z, band, y_out)
+        lo0, hi0 = shipped_bounds(y, z, band, y_out)
+        lo, hi = lo0, hi0
         pad = (k // 2,) * 4
         for j in range(z.shape[1]):
             zj = z[:, j]
             lo = torch.minimum(lo, zj - F.max_pool2d(F.pad(zj - y, pad, mode="replicate"), k, 1))
             hi = torch.maximum(hi, zj + F.max_pool2d(F.pad(y - zj, pad, mode="replicate"), k, 1))
-        return lo.clamp(min=0.0), hi
+        if cap:
+            width = hi0 - lo0
+            lo, hi = torch.maximum(lo, lo0 - width), torch.minimum(hi, hi0 + width)
+        return torch.lerp(lo0, lo.clamp(min=0.0), share), torch.lerp(hi0, hi, share)
     return bounds
 
 
@@ -162,7 +172,11 @@ def variants(buf: B.BufferFile, net, names: tuple[str, ...]) -> dict[str, np.nda
                 continue
             if kind == "terms":
                 shipped_bounds = guard_module.band_bounds
-                guard_module.band_bounds = terms_bounds(int(arg[0]))
+                cap = "cap" in arg
+                arg = [a for a in arg if a != "cap"]
+                share = 1.0 if not arg[1:] else (1.0 / (1.0 + passes_of(buf) / float(arg[1][1:])) if arg[1][0] == "n"
+                                                 else float(arg[1]))
+                guard_module.band_bounds = terms_bounds(int(arg[0]), share, cap)
                 try:
                     out[name] = denoise(buf, net).rgb
                 finally:
