@@ -145,7 +145,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
-            guide_anchor_select: float | None = None, tile: int | None = None,
+            guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
+            tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -169,7 +170,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     low-pass is settled (ratio r0, 0 = off; None: the model's), as ``--guide-anchor-settled``;
     ``guide_anchor_select``: the anchor aimed between ~z^m and the wider ~z^(m+1) by how far
     their low-passes differ (factor k >= 0, 0 = off; None: the model's), as
-    ``--guide-anchor-select``; ``tile``,
+    ``--guide-anchor-select``; ``guide_terms_passes``: the envelope's range widened towards
+    Eq. 6's terms by the share 1 / (1 + N / M) (M >= 0, 0 = off; None: the model's), as
+    ``--guide-terms-passes``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -181,8 +184,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     True
     """
     from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
-                            with_guide_anchor_select, with_guide_anchor_settled, with_guide_y_spike,
-                            with_guide_y_weight)
+                            with_guide_anchor_select, with_guide_anchor_settled, with_guide_terms_passes,
+                            with_guide_y_spike, with_guide_y_weight)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -199,6 +202,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_y_spike(chosen, guide_y_spike, "denoise: guide_y_spike", "guide=")
     chosen = with_guide_anchor_settled(chosen, guide_anchor_settled, "denoise: guide_anchor_settled", "guide=")
     chosen = with_guide_anchor_select(chosen, guide_anchor_select, "denoise: guide_anchor_select", "guide=")
+    chosen = with_guide_terms_passes(chosen, guide_terms_passes, "denoise: guide_terms_passes", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

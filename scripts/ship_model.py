@@ -55,6 +55,9 @@ RESHIP_NUMBERS = (
     ("--guide-anchor-select", "K", "ship with the envelope's anchor aimed per pixel between ~z^m and the wider "
                                    "~z^(m+1), at the wider one where their low-passes agree within K x ~z^m's "
                                    "noise (GuideConfig.anchor_select; 0 = off)", "guide", "anchor_select"),
+    ("--guide-terms-passes", "M", "ship with the envelope's range widened towards Eq. 6's terms over a 3 x 3 "
+                                  "window by the share 1 / (1 + N / M) for N passes (GuideConfig.terms_passes; "
+                                  "0 = off)", "guide", "terms_passes"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -278,6 +281,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             "range of each pixel's five estimates"
             + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
                if guide.y_spike else "")
+            + (f", widened towards the range of Eq. 6's terms over its 3 x 3 window by the share 1 / (1 + N / "
+               f"{guide.terms_passes:g}) for N passes (each end by at most the range's width)"
+               if guide.terms_passes else "")
             + ", anchored at low frequencies to "
             + (f"~z^{guide.anchor_source + 1} where its low-pass agrees with ~z^{guide.anchor_source}'s within "
                f"{guide.anchor_select:g} x the latter's noise, else to ~z^{guide.anchor_source} (per pixel),"

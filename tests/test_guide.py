@@ -122,6 +122,10 @@ def test_guide_settings_are_validated():
         with pytest.raises(ValueError, match="anchor_select"):
             GuideConfig(anchor_select=bad)
     assert GuideConfig.from_dict({}).anchor_select == 0
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="terms_passes"):
+            GuideConfig(terms_passes=bad)
+    assert GuideConfig.from_dict({}).terms_passes == 0
 
 
 def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
@@ -336,6 +340,68 @@ def test_anchor_target_takes_the_wider_estimate_where_the_low_passes_agree():
     same = np.repeat(buf.estimates[4:5], 5, axis=0)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
     np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
+
+
+def test_window_max_is_the_replicate_padded_max_pool():
+    """window_max / window_max(op=min): the extremes over each pixel's K x K window, the
+    window cut at the edges, as max_pool2d on a replicate-padded image."""
+    from ppmrecon.model.guide import window_max
+
+    torch.manual_seed(21)
+    x = torch.randn(2, 4, 3, 9, 11)
+    for size in (3, 5):
+        r = size // 2
+        padded = torch.nn.functional.pad(x.view(2, 12, 9, 11), (r, r, r, r), mode="replicate")
+        pooled = torch.nn.functional.max_pool2d(padded, size, stride=1).view_as(x)
+        assert torch.equal(window_max(x, size=size), pooled)
+        neg = torch.nn.functional.max_pool2d(-padded, size, stride=1).view_as(x)
+        assert torch.equal(window_max(x, torch.minimum, size), -neg)
+
+
+def test_terms_range_widens_towards_eq6_terms_by_a_share_capped_at_the_width():
+    """terms_range: each end moves towards the extreme of Eq. 6's terms over the 3 x 3 window
+    (brute force) by the share s, never inwards, by at most s x the range's width, the low
+    end never below 0; s = 0 is the range itself; terms_share falls with N."""
+    from ppmrecon.model.guide import terms_range, terms_share
+
+    torch.manual_seed(22)
+    y, z = torch.rand(1, 3, 10, 12) * 4, torch.rand(1, 4, 3, 10, 12)
+    lo, hi = torch.minimum(y, z.amin(1)), torch.maximum(y, z.amax(1))
+    t = _terms(y, z, 3)                                     # (1, 36, 3, H, W)
+    width = hi - lo
+    lo_full = torch.maximum(torch.minimum(lo, t.amin(1)), lo - width).clamp(min=0.0)
+    hi_full = torch.minimum(torch.maximum(hi, t.amax(1)), hi + width)
+    for share in (0.0, 0.3, 1.0):
+        a, b = terms_range(y, z, lo, hi, share)
+        torch.testing.assert_close(a, lo + share * (lo_full - lo), rtol=1e-6, atol=1e-6)
+        torch.testing.assert_close(b, hi + share * (hi_full - hi), rtol=1e-6, atol=1e-6)
+        assert bool((a <= lo).all() and (b >= hi).all() and (a >= 0).all())
+        assert bool((lo - a <= share * width + 1e-6).all() and (b - hi <= share * width + 1e-6).all())
+    assert bool((terms_range(y, z, lo, hi, 1.0)[1] > hi).any())     # it does widen somewhere
+    cfg = replace(ENVELOPE, terms_passes=16.0)
+    assert terms_share(16, cfg) == 0.5 and terms_share(4, cfg) == 0.8
+    shares = [terms_share(n, cfg) for n in (1, 4, 16, 64, 256, 1024, 1 << 20)]
+    assert shares == sorted(shares, reverse=True) and shares[-1] < 1e-4
+    assert terms_share(4, ENVELOPE) == 0.0
+
+
+def test_envelope_with_the_terms_range_is_consistent_and_needs_the_pass_count():
+    """With terms_passes the envelope still returns converged inputs exactly (every term is
+    the image, the range's width 0), changes the image of a noisy render, and refuses to run
+    without the render's pass count."""
+    from ppmrecon.model.guide import envelope
+
+    buf = make_buffer(24, 24, seed=12)
+    on = replace(ENVELOPE, terms_passes=16.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    same = np.repeat(buf.estimates[4:5], 5, axis=0)
+    np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
+    few = replace(buf, header=dict(buf.header, **{B.H_PASSES: 4}))
+    plain = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, ENVELOPE)
+    assert not np.array_equal(denoise(few, model).rgb, denoise(few, plain).rgb)
+    y, z = torch.rand(1, 3, 8, 8), torch.rand(1, 4, 3, 8, 8)
+    with pytest.raises(ValueError, match="pass count"):
+        envelope(torch.rand(1, 4, 8, 8), y, z, torch.rand(1, 1, 8, 8), DEFAULT_ON, on)
 
 
 def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood(monkeypatch):
@@ -604,6 +670,19 @@ def test_cli_and_api_guide_anchor_select(tmp_path, capsys):
     plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "0", "y=0", guide_anchor_select=0.0)
     assert not np.array_equal(aimed, plain)
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-select")
+
+
+def test_cli_and_api_guide_terms_passes(tmp_path, capsys):
+    """--guide-terms-passes / guide_terms_passes= widen the envelope's range towards Eq. 6's
+    terms (the header says it; CLI and API agree; 0 turns it off); negative or not a number:
+    one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=18)
+    buf = replace(buf, header=dict(buf.header, **{B.H_PASSES: 4}))
+    args = _envelope_cli(tmp_path, buf)
+    wide = _cli_and_api_agree(tmp_path, buf, args, "--guide-terms-passes", "16", " terms=16", guide_terms_passes=16.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-terms-passes", "0", "y=0", guide_terms_passes=0.0)
+    assert not np.array_equal(wide, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-terms-passes")
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

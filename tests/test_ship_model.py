@@ -172,6 +172,12 @@ def test_reship_aims_the_anchor_at_another_estimate(ship_model, tmp_path, monkey
     _run(ship_model, monkeypatch, "--guide-anchor-source", "3", "--guide-anchor-select", "4")
     card = (tmp_path / "default.md").read_text()
     assert "to ~z^4 where its low-pass agrees with ~z^3's within 4 x the latter's noise, else to ~z^3" in card
+    _run(ship_model, monkeypatch, "--guide-terms-passes", "16")
+    assert C.load_checkpoint(tmp_path / "default.pt").model.guide.terms_passes == 16.0
+    card = (tmp_path / "default.md").read_text()
+    assert "widened towards the range of Eq. 6's terms over its 3 x 3 window by the share 1 / (1 + N / 16)" in card
+    with pytest.raises(SystemExit, match="--guide-terms-passes"):
+        _run(ship_model, monkeypatch, "--guide-terms-passes", "-1")
     with pytest.raises(SystemExit, match="--guide-anchor-source"):
         _run(ship_model, monkeypatch, "--guide-anchor-source", "5")
     with pytest.raises(SystemExit):                               # not an index: argparse refuses it

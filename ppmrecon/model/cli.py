@@ -119,6 +119,10 @@ def build_parser() -> ArgumentParser:
                    help="envelope modes: aim the anchor per pixel between its ~z^m (the shipped ~z^3) and "
                         "the wider ~z^(m+1), at the wider one where their low-passes agree within K x "
                         "~z^m's noise; 0 = ~z^m alone (default: the checkpoint's; the shipped model's 4)")
+    p.add_argument("--guide-terms-passes", type=float, default=None, metavar="M",
+                   help="envelope modes: widen each pixel's range towards that of Eq. 6's terms over its 3 x 3 "
+                        "window by the share 1 / (1 + N / M) for a render of N passes, each end by at most the "
+                        "range's width; 0 = off (default: the checkpoint's; the shipped model's 16)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -223,6 +227,11 @@ def with_guide_anchor_select(guide: GuideConfig, k: float | None, option: str, s
     return _with_guide_number(guide, "anchor_select", k, option, switch)
 
 
+def with_guide_terms_passes(guide: GuideConfig, m: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``terms_passes`` = ``m`` (None: unchanged), as :func:`with_guide_y_weight`."""
+    return _with_guide_number(guide, "terms_passes", m, option, switch)
+
+
 def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
     if value is None:
         return guide
@@ -303,6 +312,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_y_spike(guide, args.guide_y_spike, "--guide-y-spike", "--guide")
     guide = with_guide_anchor_settled(guide, args.guide_anchor_settled, "--guide-anchor-settled", "--guide")
     guide = with_guide_anchor_select(guide, args.guide_anchor_select, "--guide-anchor-select", "--guide")
+    guide = with_guide_terms_passes(guide, args.guide_terms_passes, "--guide-terms-passes", "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -353,8 +363,9 @@ def _guide_header(guide: GuideConfig) -> str:
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
+    terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
-            f"y={guide.y_weight:g}{spike}{settled}{select}")
+            f"y={guide.y_weight:g}{spike}{settled}{select}{terms}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

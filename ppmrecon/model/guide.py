@@ -107,6 +107,8 @@ ENVELOPE_MODES = ("envelope", "chooser")
 SPIKE_RATIO = 4.0
 #: Width (pixels) of the Gaussian that averages the variances in :func:`y_share`.
 Y_WEIGHT_SIGMA = 2.0
+#: Window (pixels) over which :func:`terms_range` takes Eq. 6's terms: the combiner's 3 x 3.
+TERMS_WINDOW = 3
 #: :func:`candidate_medians` (the spike tests) computes the 3 x 3 medians of the whole image
 #: when more than this fraction of its pixels are candidates, else at the candidates only.
 DENSE_SPIKES = 0.05
@@ -168,6 +170,12 @@ class GuideConfig:
     #: bandwidth bias shows; 0 = ~z^m alone, as with m = 4 (no wider estimate; checkpoints
     #: without the setting read as 0)
     anchor_select: float = 0.0
+    #: envelope modes: > 0 widens each pixel's range towards that of Eq. 6's terms over its
+    #: 3 x 3 window by the share 1 / (1 + N / M) for a render of N passes, M = this
+    #: (:func:`terms_range`): all the way at few passes, where the five estimates' own range
+    #: is too narrow to hold the truth, little at many; 0 = off (checkpoints without the
+    #: setting read as 0)
+    terms_passes: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -211,6 +219,10 @@ class GuideConfig:
                 or not math.isfinite(self.anchor_select) or self.anchor_select < 0:
             raise ValueError("guide setting 'anchor_select' must be a factor >= 0 (0 = off), "
                              f"got {self.anchor_select!r}")
+        if isinstance(self.terms_passes, bool) or not isinstance(self.terms_passes, (int, float)) \
+                or not math.isfinite(self.terms_passes) or self.terms_passes < 0:
+            raise ValueError("guide setting 'terms_passes' must be a pass count >= 0 (0 = off), "
+                             f"got {self.terms_passes!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -425,9 +437,58 @@ def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance
     return torch.lerp(wide, narrow, w), torch.lerp(wider_variance, anchor_variance, w)
 
 
+def window_max(x: torch.Tensor, op=torch.maximum, size: int = TERMS_WINDOW) -> torch.Tensor:
+    """The maximum (``op`` = ``torch.minimum``: minimum) of ``x`` (..., H, W) over each
+    pixel's ``size`` x ``size`` window (odd size; the window cut at the image's edges, as
+    with replicate padding). As running extremes of shifted views, rows then columns:
+    ``max_pool2d`` takes about 5x as long on a CPU (1.2 s against 0.22 s for 24 x 1280 x 720)."""
+    out = x
+    for axis in (-1, -2):
+        src, out = out, out.clone()
+        for shift in range(1, size // 2 + 1):
+            n = src.shape[axis]
+            op(out.narrow(axis, shift, n - shift), src.narrow(axis, 0, n - shift),
+               out=out.narrow(axis, shift, n - shift))
+            op(out.narrow(axis, 0, n - shift), src.narrow(axis, shift, n - shift),
+               out=out.narrow(axis, 0, n - shift))
+    return out
+
+
+def terms_share(passes: float, cfg: GuideConfig) -> float:
+    """The share s = 1 / (1 + N / M) of the way :func:`terms_range` widens a render of N
+    passes, M = ``cfg.terms_passes`` (0: off, s = 0)."""
+    return 1.0 / (1.0 + passes / cfg.terms_passes) if cfg.terms_passes else 0.0
+
+
+def terms_range(y: torch.Tensor, z: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
+                share: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """A pixel's range ``[lo, hi]`` (B, 3, H, W) widened towards the range of paper 002
+    Eq. 6's terms ``t^j_{c,i} = ~y_i + ~z^j_c - ~z^j_i`` over its K x K window (K =
+    :data:`TERMS_WINDOW`, replicate padding), by the share s, each end by at most the
+    range's own width w = hi - lo (a ~y spike in the window would otherwise move it by the
+    spike's height):
+
+        lo' = lo + s (max(min(lo, min_{i,j} t^j_{c,i}), lo - w)^+ - lo)
+        hi' = hi + s (min(max(hi, max_{i,j} t^j_{c,i}), hi + w) - hi)
+
+    y (B, 3, H, W), z (B, 4, 3, H, W). Consistent: every term converges to the truth x_c
+    (Appendix A) and w to 0, so both ends do; s itself falls with N (:func:`terms_share`).
+    Why: at few passes the five estimates of a pixel share most of their photons, so its
+    truth often lies outside their range; the terms bring in the neighbours' ~y, gathered
+    at their own hit points, with ~z^j's difference between the two pixels (measured with
+    ``benchmarks/guide_inputs.py``, ``terms 3 n16 cap``: see the README)."""
+    d = z - y[:, None]                      # t^j_{c,i} = ~z^j_c - d^j_i, every j at once
+    t_lo = (z - window_max(d)).amin(1)
+    t_hi = (z - window_max(d, torch.minimum)).amax(1)
+    width = hi - lo
+    lo_t = torch.maximum(torch.minimum(lo, t_lo), lo - width).clamp_(min=0.0)
+    hi_t = torch.minimum(torch.maximum(hi, t_hi), hi + width)
+    return torch.lerp(lo, lo_t, share), torch.lerp(hi, hi_t, share)
+
+
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
              guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
-             wider_variance: torch.Tensor | None = None) -> torch.Tensor:
+             wider_variance: torch.Tensor | None = None, passes: float | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -444,7 +505,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     (:func:`lone_y_spikes`, eps = the guard's floor x ``scale``, the image's radiance scale,
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
     correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` r0 the anchor
-    acts only where its low-pass is settled (its standard deviation below r0 times its level).
+    acts only where its low-pass is settled (its standard deviation below r0 times its level);
+    with ``cfg.terms_passes`` the range widened towards Eq. 6's terms (:func:`terms_range`)
+    for a render of ``passes`` N.
     Consistent: the five estimates of pixel c converge to its truth x_c, so does anything
     clamped between them (the guard's output band), and the anchor's correction vanishes.
     Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6 with the
@@ -457,6 +520,10 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
 
     spikes = y_spike_mask(y, z, cfg, guard, scale)
     lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
+    if cfg.terms_passes:
+        if passes is None:
+            raise ValueError("envelope: the guide's terms_passes needs the render's pass count")
+        lo, hi = terms_range(y, z, lo, hi, terms_share(passes, cfg))
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)

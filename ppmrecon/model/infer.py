@@ -264,9 +264,10 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
     if guide.y_spike and scale is None:
         scale = _scale(buf)
+    passes = passes_of(buf) if guide.terms_passes else None
     with torch.no_grad():
         image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
-                         wider)
+                         wider, passes)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
