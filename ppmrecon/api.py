@@ -146,6 +146,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
+            guide_anchor_spikes: float | None = None,
             tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
@@ -172,7 +173,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     their low-passes differ (factor k >= 0, 0 = off; None: the model's), as
     ``--guide-anchor-select``; ``guide_terms_passes``: the envelope's range widened towards
     Eq. 6's terms by the share 1 / (1 + N / M) (M >= 0, 0 = off; None: the model's), as
-    ``--guide-terms-passes``; ``tile``,
+    ``--guide-terms-passes``; ``guide_anchor_spikes``: the anchor kept from spreading an
+    isolated bright pixel of its aim, that pixel set to the inverse-variance mean of ~y and
+    ~z^4 (factor R > 1, 0 = off; None: the model's), as ``--guide-anchor-spikes``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -185,6 +188,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     """
     from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
                             with_guide_anchor_select, with_guide_anchor_settled, with_guide_terms_passes,
+                            with_guide_anchor_spikes,
                             with_guide_y_spike, with_guide_y_weight)
     from .model.infer import denoise as run
 
@@ -203,6 +207,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_anchor_settled(chosen, guide_anchor_settled, "denoise: guide_anchor_settled", "guide=")
     chosen = with_guide_anchor_select(chosen, guide_anchor_select, "denoise: guide_anchor_select", "guide=")
     chosen = with_guide_terms_passes(chosen, guide_terms_passes, "denoise: guide_terms_passes", "guide=")
+    chosen = with_guide_anchor_spikes(chosen, guide_anchor_spikes, "denoise: guide_anchor_spikes", "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

@@ -58,6 +58,10 @@ RESHIP_NUMBERS = (
     ("--guide-terms-passes", "M", "ship with the envelope's range widened towards Eq. 6's terms over a 3 x 3 "
                                   "window by the share 1 / (1 + N / M) for N passes (GuideConfig.terms_passes; "
                                   "0 = off)", "guide", "terms_passes"),
+    ("--guide-anchor-spikes", "R", "ship with the envelope's anchor kept from spreading the gap of an isolated "
+                                   "bright pixel of its aim (R x above its 3 x 3 median), that pixel set to the "
+                                   "inverse-variance mean of ~y and ~z^4 (GuideConfig.anchor_spikes; 0 = off)",
+     "guide", "anchor_spikes"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -292,6 +296,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"
                if guide.anchor_settled else "")
+            + (f", isolated bright pixels of the anchor's aim ({guide.anchor_spikes:g}x above its 3 x 3 median) "
+               "left out of its low-pass and set to the inverse-variance mean of ~y and ~z^4"
+               if guide.anchor_spikes else "")
             + f"{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 

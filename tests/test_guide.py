@@ -126,6 +126,10 @@ def test_guide_settings_are_validated():
         with pytest.raises(ValueError, match="terms_passes"):
             GuideConfig(terms_passes=bad)
     assert GuideConfig.from_dict({}).terms_passes == 0
+    for bad in (1.0, 0.5, -1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="anchor_spikes"):
+            GuideConfig(anchor_spikes=bad)
+    assert GuideConfig.from_dict({}).anchor_spikes == 0 and GuideConfig(anchor_spikes=8).anchor_spikes == 8
 
 
 def test_checkpoints_carry_the_guide_and_older_ones_read_as_off(tmp_path):
@@ -402,6 +406,65 @@ def test_envelope_with_the_terms_range_is_consistent_and_needs_the_pass_count():
     y, z = torch.rand(1, 3, 8, 8), torch.rand(1, 4, 3, 8, 8)
     with pytest.raises(ValueError, match="pass count"):
         envelope(torch.rand(1, 4, 8, 8), y, z, torch.rand(1, 1, 8, 8), DEFAULT_ON, on)
+
+
+def test_aim_spikes_are_lone_bright_pixels_and_spike_estimate_weighs_by_variance():
+    """aim_spikes: a light of one or two pixels far above its other neighbours is one; a
+    bright patch (its corners too), a thin bright line (but its two ends) or a pixel less
+    than R x above its neighbours is not; spike_estimate is the inverse-variance mean of ~y and ~z (their plain
+    mean where both variances are 0)."""
+    from ppmrecon.model.guide import aim_spikes, spike_estimate
+
+    t = torch.ones(1, 3, 16, 16)
+    t[..., 3, 3] = 100.0                                  # a lone light
+    t[..., 3, 7:9] = 100.0                                # a light of two pixels
+    t[..., 7:10, 7:10] = 100.0                            # a bright patch
+    t[..., 13, 2:12] = 100.0                              # a thin bright line
+    t[..., 3, 12] = 5.0                                   # 5x its neighbours: below R = 8
+    s = aim_spikes(t, 1e-3, 8.0)
+    expected = torch.zeros(1, 1, 16, 16, dtype=torch.bool)
+    expected[..., 3, 3] = expected[..., 3, 7] = expected[..., 3, 8] = True
+    expected[..., 13, 2] = expected[..., 13, 11] = True    # a line's ends have one bright neighbour
+    assert torch.equal(s, expected)
+    assert aim_spikes(t, 1e-3, 4.0).sum() == 6
+    y, z = torch.full((1, 3, 2, 2), 10.0), torch.full((1, 3, 2, 2), 40.0)
+    vy = torch.tensor([[[[1.0, 3.0], [0.0, 0.0]]]])
+    vz = torch.tensor([[[[1.0, 1.0], [0.0, 2.0]]]])
+    est = spike_estimate(y, z, vy, vz)[0, 0]
+    torch.testing.assert_close(est, torch.tensor([[25.0, 32.5], [25.0, 10.0]]))
+
+
+def test_envelope_anchor_spikes_keeps_a_lone_light_out_of_its_neighbours():
+    """The anchor spreads the gap between a lone bright pixel of its aim and the (flattened)
+    guide into a ring of neighbours, lifting them to the top of their range; with
+    anchor_spikes the neighbours keep the guide and the light takes the inverse-variance
+    mean of ~y and ~z^4; converged inputs come back exactly either way."""
+    from ppmrecon.model.guide import envelope
+
+    h = w = 15
+    y = torch.full((1, 3, h, w), 1.5)                    # room above the guide in every pixel
+    z = torch.full((1, 4, 3, h, w), 1.0)
+    y[..., 7, 7], z[..., 7, 7] = 50.0, 150.0             # a small light seen from both hit points
+    guide = torch.ones(1, 4, h, w)                        # OIDN took the light for a firefly
+    small = torch.full((1, 1, h, w), 1e-8)
+    vy, v4 = torch.full((1, 1, h, w), 1.0), torch.full((1, 1, h, w), 1.0)
+    vy[..., 7, 7], v4[..., 7, 7] = 100.0, 300.0
+    plain = replace(ENVELOPE, anchor_source=3)
+    on = replace(plain, anchor_spikes=8.0)
+    halo = envelope(guide, y, z, small, DEFAULT_ON, plain)
+    kept = envelope(guide, y, z, small, DEFAULT_ON, on, spike_variances=(vy, v4))
+    ring = torch.zeros(h, w, dtype=torch.bool)
+    ring[5:10, 5:10] = True
+    ring[7, 7] = False
+    assert float(halo[0, :, ring].mean()) > 1.2           # the ring lifted towards ~y
+    assert torch.equal(kept[0, :, ring], torch.ones_like(kept[0, :, ring]))
+    torch.testing.assert_close(kept[0, :, 7, 7], torch.full((3,), 0.75 * 50.0 + 0.25 * 150.0))
+    with pytest.raises(ValueError, match="anchor_spikes"):
+        envelope(guide, y, z, small, DEFAULT_ON, on)
+    buf = make_buffer(24, 24, seed=12)
+    same = np.repeat(buf.estimates[4:5], 5, axis=0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
 
 
 def test_lone_y_spikes_are_above_every_z_and_their_own_neighbourhood(monkeypatch):
@@ -683,6 +746,22 @@ def test_cli_and_api_guide_terms_passes(tmp_path, capsys):
     plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-terms-passes", "0", "y=0", guide_terms_passes=0.0)
     assert not np.array_equal(wide, plain)
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-terms-passes")
+
+
+def test_cli_and_api_guide_anchor_spikes(tmp_path, capsys):
+    """--guide-anchor-spikes / guide_anchor_spikes= (the header says it; CLI and API agree; 0
+    turns it off); 1, negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=19)
+    est = buf.estimates.copy()
+    est[0, 12, 12], est[1:, 12, 12] = 5e2, 2e3               # a small light seen from both hit points
+    buf = replace(buf, estimates=est)
+    args = _envelope_cli(tmp_path, buf)
+    kept = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-spikes", "8", " spikes=8", guide_anchor_spikes=8.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-spikes", "0", "y=0", guide_anchor_spikes=0.0)
+    assert not np.array_equal(kept, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-spikes")
+    assert denoise_main(args + ["--guide-anchor-spikes", "1", "-o", str(tmp_path / "x.exr")]) == 2
+    assert "--guide-anchor-spikes" in capsys.readouterr().err
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

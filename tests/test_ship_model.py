@@ -178,6 +178,9 @@ def test_reship_aims_the_anchor_at_another_estimate(ship_model, tmp_path, monkey
     assert "widened towards the range of Eq. 6's terms over its 3 x 3 window by the share 1 / (1 + N / 16)" in card
     with pytest.raises(SystemExit, match="--guide-terms-passes"):
         _run(ship_model, monkeypatch, "--guide-terms-passes", "-1")
+    _run(ship_model, monkeypatch, "--guide-anchor-spikes", "8")
+    assert C.load_checkpoint(tmp_path / "default.pt").model.guide.anchor_spikes == 8.0
+    assert "(8x above its 3 x 3 median) left out of its low-pass" in (tmp_path / "default.md").read_text()
     with pytest.raises(SystemExit, match="--guide-anchor-source"):
         _run(ship_model, monkeypatch, "--guide-anchor-source", "5")
     with pytest.raises(SystemExit):                               # not an index: argparse refuses it

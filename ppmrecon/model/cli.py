@@ -123,6 +123,11 @@ def build_parser() -> ArgumentParser:
                    help="envelope modes: widen each pixel's range towards that of Eq. 6's terms over its 3 x 3 "
                         "window by the share 1 / (1 + N / M) for a render of N passes, each end by at most the "
                         "range's width; 0 = off (default: the checkpoint's; the shipped model's 16)")
+    p.add_argument("--guide-anchor-spikes", type=float, default=None, metavar="R",
+                   help="envelope modes: keep the anchor from spreading the gap of an isolated bright pixel of its "
+                        "aim (RGB mean above R x its 3 x 3 median: a small light OIDN flattened) into its "
+                        "neighbours, and set that pixel to the inverse-variance mean of ~y and ~z^4; 0 = off "
+                        "(default: the checkpoint's)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -232,6 +237,11 @@ def with_guide_terms_passes(guide: GuideConfig, m: float | None, option: str, sw
     return _with_guide_number(guide, "terms_passes", m, option, switch)
 
 
+def with_guide_anchor_spikes(guide: GuideConfig, r: float | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with ``anchor_spikes`` = ``r`` (None: unchanged), as :func:`with_guide_y_weight`."""
+    return _with_guide_number(guide, "anchor_spikes", r, option, switch)
+
+
 def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
     if value is None:
         return guide
@@ -313,6 +323,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_anchor_settled(guide, args.guide_anchor_settled, "--guide-anchor-settled", "--guide")
     guide = with_guide_anchor_select(guide, args.guide_anchor_select, "--guide-anchor-select", "--guide")
     guide = with_guide_terms_passes(guide, args.guide_terms_passes, "--guide-terms-passes", "--guide")
+    guide = with_guide_anchor_spikes(guide, args.guide_anchor_spikes, "--guide-anchor-spikes", "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
@@ -364,8 +375,9 @@ def _guide_header(guide: GuideConfig) -> str:
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
+    spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
-            f"y={guide.y_weight:g}{spike}{settled}{select}{terms}")
+            f"y={guide.y_weight:g}{spike}{settled}{select}{terms}{spikes}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

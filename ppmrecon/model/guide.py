@@ -176,6 +176,11 @@ class GuideConfig:
     #: is too narrow to hold the truth, little at many; 0 = off (checkpoints without the
     #: setting read as 0)
     terms_passes: float = 0.0
+    #: envelope modes: > 1 keeps the anchor from spreading the gap of an isolated bright pixel
+    #: of its aim (RGB mean above this factor x its second brightest neighbour's) into its neighbours,
+    #: and gives that pixel the inverse-variance mean of ~y and ~z^4 (:func:`aim_spikes`);
+    #: 0 = off (checkpoints without the setting read as 0)
+    anchor_spikes: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -223,6 +228,10 @@ class GuideConfig:
                 or not math.isfinite(self.terms_passes) or self.terms_passes < 0:
             raise ValueError("guide setting 'terms_passes' must be a pass count >= 0 (0 = off), "
                              f"got {self.terms_passes!r}")
+        if isinstance(self.anchor_spikes, bool) or not isinstance(self.anchor_spikes, (int, float)) \
+                or not (self.anchor_spikes == 0 or (math.isfinite(self.anchor_spikes) and self.anchor_spikes > 1)):
+            raise ValueError("guide setting 'anchor_spikes' must be 0 (off) or a finite factor > 1, "
+                             f"got {self.anchor_spikes!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -437,6 +446,40 @@ def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance
     return torch.lerp(wide, narrow, w), torch.lerp(wider_variance, anchor_variance, w)
 
 
+def aim_spikes(target: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:
+    """The isolated bright pixels of the anchor's aim, (B, 1, H, W) bool: RGB mean above
+    ``ratio`` x (the second largest of its eight neighbours' + eps), i.e. a light of one or
+    two pixels; a corner or edge of a bright patch or a pixel of a thin bright line has at
+    least two bright neighbours and is not one. target (B, 3, H, W), eps a scalar or
+    (B, 1, 1, 1); the neighbours are looked up only where the pixel is above ``ratio`` x
+    (its 3 x 3 minimum + eps), a necessary condition that few pixels meet."""
+    lum = target.mean(1, keepdim=True)
+    eps = torch.as_tensor(eps, dtype=lum.dtype, device=lum.device).reshape(-1, 1, 1, 1).expand(lum.shape[0], 1, 1, 1)
+    spikes = lum > ratio * (window_max(lum, torch.minimum) + eps)
+    h, w = lum.shape[-2:]
+    dr = torch.tensor([-1, -1, -1, 0, 0, 1, 1, 1], device=lum.device)
+    dc = torch.tensor([-1, 0, 1, -1, 1, -1, 0, 1], device=lum.device)
+    for b in range(lum.shape[0]):                   # images of a batch (one at inference)
+        rows, cols = spikes[b, 0].nonzero(as_tuple=True)
+        r = (rows[:, None] + dr).clamp(0, h - 1)    # replicate padding, as the other window tests
+        c = (cols[:, None] + dc).clamp(0, w - 1)
+        second = lum[b, 0, r, c].topk(2, dim=1).values[:, 1]
+        spikes[b, 0, rows, cols] = lum[b, 0, rows, cols] > ratio * (second + eps[b, 0, 0, 0])
+    return spikes
+
+
+def spike_estimate(y: torch.Tensor, z: torch.Tensor, y_variance: torch.Tensor,
+                   z_variance: torch.Tensor) -> torch.Tensor:
+    """The inverse-variance mean of ~y and one ~z^j, (B, 3, H, W): ``(~y V_z + ~z V_y) /
+    (V_y + V_z)`` (their plain mean where both variances are 0). The two gather at
+    independent hit points (A and B), so their errors are close to independent; consistent,
+    as a convex combination of two estimates that converge to the truth."""
+    total = y_variance + z_variance
+    w = torch.where(total > 0, z_variance / total.clamp(min=torch.finfo(total.dtype).tiny),
+                    torch.full_like(total, 0.5))
+    return torch.lerp(z, y, w)
+
+
 def window_max(x: torch.Tensor, op=torch.maximum, size: int = TERMS_WINDOW) -> torch.Tensor:
     """The maximum (``op`` = ``torch.minimum``: minimum) of ``x`` (..., H, W) over each
     pixel's ``size`` x ``size`` window (odd size; the window cut at the image's edges, as
@@ -488,7 +531,8 @@ def terms_range(y: torch.Tensor, z: torch.Tensor, lo: torch.Tensor, hi: torch.Te
 
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
              guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
-             wider_variance: torch.Tensor | None = None, passes: float | None = None) -> torch.Tensor:
+             wider_variance: torch.Tensor | None = None, passes: float | None = None,
+             spike_variances: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -507,7 +551,14 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` r0 the anchor
     acts only where its low-pass is settled (its standard deviation below r0 times its level);
     with ``cfg.terms_passes`` the range widened towards Eq. 6's terms (:func:`terms_range`)
-    for a render of ``passes`` N.
+    for a render of ``passes`` N; with ``cfg.anchor_spikes`` R the isolated bright pixels of
+    the aim t (:func:`aim_spikes`, eps as for ``y_spike``) take part in the anchor with t = e
+    (their gap is not spread into their neighbours) and are set to the inverse-variance mean
+    of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W)).
+    Why: OIDN takes a small bright light (seen directly or through a specular chain) for a
+    firefly and flattens it; the anchor then spread the light's whole gap over its sigma,
+    lifting a ring of neighbours to the top of their ranges (``0021_caustic_paths``: all of
+    that image's excess over its best input lay within 4 px of one such pixel).
     Consistent: the five estimates of pixel c converge to its truth x_c, so does anything
     clamped between them (the guard's output band), and the anchor's correction vanishes.
     Measured (``benchmarks/bench_guide.py``, ``envelope`` variants) against Eq. 6 with the
@@ -527,8 +578,16 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
+        spikes = None
+        if cfg.anchor_spikes:
+            if spike_variances is None:
+                raise ValueError("envelope: the guide's anchor_spikes needs the variances of ~y and ~z^4")
+            spikes = aim_spikes(target, guard.floor * scale, cfg.anchor_spikes)
+            target = torch.where(spikes, held, target)
         held = anchor_where_biased(held, target, target_variance, guard.anchor, cfg.anchor_noise,
                                    cfg.anchor_window, cfg.anchor_settled)
+        if spikes is not None:
+            held = torch.where(spikes, spike_estimate(y, z[:, -1], *spike_variances), held)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
 

@@ -262,12 +262,13 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
 
     m = guide.anchor_source
     wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
-    if guide.y_spike and scale is None:
-        scale = _scale(buf)
     passes = passes_of(buf) if guide.terms_passes else None
+    if (guide.y_spike or guide.anchor_spikes) and scale is None:
+        scale = _scale(buf)
+    spike_variances = (variance_of(0), variance_of(len(buf.variances) - 1)) if guide.anchor_spikes else None
     with torch.no_grad():
         image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
-                         wider, passes)
+                         wider, passes, spike_variances)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
