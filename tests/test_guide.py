@@ -406,6 +406,19 @@ def test_envelope_with_the_terms_range_is_consistent_and_needs_the_pass_count():
     y, z = torch.rand(1, 3, 8, 8), torch.rand(1, 4, 3, 8, 8)
     with pytest.raises(ValueError, match="pass count"):
         envelope(torch.rand(1, 4, 8, 8), y, z, torch.rand(1, 1, 8, 8), DEFAULT_ON, on)
+    # the widened room is the guide's: the anchor keeps within [min(lo, e), max(hi, e)],
+    # e the guide held in the widened range, while the guide itself uses the room
+    from ppmrecon.model.guide import terms_range, terms_share
+    torch.manual_seed(23)
+    y, z = torch.rand(1, 3, 20, 20), torch.rand(1, 4, 3, 20, 20)
+    z[:, 2, :, 10, 10] = 50.0                              # a light in the anchor's aim
+    guide = torch.rand(1, 4, 20, 20) * 2.0
+    out = envelope(guide, y, z, torch.full((1, 1, 20, 20), 1e-8), DEFAULT_ON, on, passes=1)
+    lo, hi = torch.minimum(y, z.amin(1)), torch.maximum(y, z.amax(1))
+    wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(1, on))
+    e = torch.minimum(torch.maximum(guide[:, :3], wide_lo), wide_hi)
+    assert bool((e > hi).any() and (e < lo).any())           # the guide did use the widened room
+    assert bool((out <= torch.maximum(hi, e)).all() and (out >= torch.minimum(lo, e)).all())
 
 
 def test_aim_spikes_are_lone_bright_pixels_and_spike_estimate_weighs_by_variance():

@@ -550,8 +550,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     a float or (B, 1, 1, 1)); with ``cfg.anchor_window`` the anchor's noise test takes the
     correlation of ~z^m's noise between neighbours; with ``cfg.anchor_settled`` r0 the anchor
     acts only where its low-pass is settled (its standard deviation below r0 times its level);
-    with ``cfg.terms_passes`` the range widened towards Eq. 6's terms (:func:`terms_range`)
-    for a render of ``passes`` N; with ``cfg.anchor_spikes`` R the isolated bright pixels of
+    with ``cfg.terms_passes`` the guide held in the range widened towards Eq. 6's terms
+    (:func:`terms_range`) for a render of ``passes`` N, and the anchored image then held in
+    ``[min(lo, e), max(hi, e)]``, [lo, hi] the five estimates' range and e that held guide; with ``cfg.anchor_spikes`` R the isolated bright pixels of
     the aim t (:func:`aim_spikes`, eps as for ``y_spike``) take part in the anchor with t = e
     (their gap is not spread into their neighbours) and are set to the inverse-variance mean
     of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W)).
@@ -574,8 +575,14 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     if cfg.terms_passes:
         if passes is None:
             raise ValueError("envelope: the guide's terms_passes needs the render's pass count")
-        lo, hi = terms_range(y, z, lo, hi, terms_share(passes, cfg))
-    held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
+        wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes, cfg))
+        held = torch.minimum(torch.maximum(guide[:, :N_RGB], wide_lo), wide_hi)
+        # the widened room is the guide's, not the anchor's: the anchor's correction stays
+        # within the five estimates' range or the held guide (its spread of a light's gap
+        # would otherwise lift a ring of neighbours further, to the widened top)
+        lo, hi = torch.minimum(lo, held), torch.maximum(hi, held)
+    else:
+        held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
         target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
         spikes = None
