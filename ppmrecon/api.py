@@ -186,10 +186,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_quality,
-                            with_guide_anchor_select, with_guide_anchor_settled, with_guide_terms_passes,
-                            with_guide_anchor_spikes,
-                            with_guide_y_spike, with_guide_y_weight)
+    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_numbers,
+                            with_guide_quality)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -202,12 +200,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
-    chosen = with_guide_y_weight(chosen, guide_y_weight, "denoise: guide_y_weight", "guide=")
-    chosen = with_guide_y_spike(chosen, guide_y_spike, "denoise: guide_y_spike", "guide=")
-    chosen = with_guide_anchor_settled(chosen, guide_anchor_settled, "denoise: guide_anchor_settled", "guide=")
-    chosen = with_guide_anchor_select(chosen, guide_anchor_select, "denoise: guide_anchor_select", "guide=")
-    chosen = with_guide_terms_passes(chosen, guide_terms_passes, "denoise: guide_terms_passes", "guide=")
-    chosen = with_guide_anchor_spikes(chosen, guide_anchor_spikes, "denoise: guide_anchor_spikes", "guide=")
+    chosen = with_guide_numbers(chosen, {"y_weight": guide_y_weight, "y_spike": guide_y_spike,
+                                         "anchor_settled": guide_anchor_settled, "anchor_select": guide_anchor_select,
+                                         "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes},
+                                lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb
 

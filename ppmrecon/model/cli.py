@@ -29,7 +29,7 @@ import sys
 import time
 from dataclasses import replace
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Mapping, Sequence
 
 import torch
 
@@ -52,6 +52,36 @@ H_GUARD = "ppmrecon.guard"
 H_ANCHOR = "ppmrecon.guard.anchor"
 H_GUIDE = "ppmrecon.guide"
 
+
+
+#: The guide's numeric settings as options: (flag, metavar, GuideConfig key, help). The
+#: API's keyword for each is the flag without its dashes (``guide_y_weight=``).
+GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
+    ("--guide-y-weight", "F", "y_weight",
+     "weight of OIDN's image of ~y (hit point A) in the guide, F >= 0: mixed with OIDN's image of ~z^4 by the "
+     "inverse of their inputs' local variances, ~y's times F; 0 = ~z^4's alone (default: the checkpoint's; the "
+     "shipped model's 2)"),
+    ("--guide-y-spike", "R", "y_spike",
+     "envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x above every ~z^j of the "
+     "pixel and its own 3 x 3 median; 0 = off, else R > 1 (default: the checkpoint's; the shipped model's 8)"),
+    ("--guide-anchor-settled", "R", "anchor_settled",
+     "envelope modes: the anchor acts only where its own low-pass is settled, its standard deviation below R x "
+     "its level (helps next to small bright emitters, costs the glossy Cornell box's low frequencies; README); "
+     "0 = off (default: the checkpoint's; the shipped model's 0)"),
+    ("--guide-anchor-select", "K", "anchor_select",
+     "envelope modes: aim the anchor per pixel between its ~z^m (the shipped ~z^3) and the wider ~z^(m+1), at "
+     "the wider one where their low-passes agree within K x ~z^m's noise; 0 = ~z^m alone (default: the "
+     "checkpoint's; the shipped model's 4)"),
+    ("--guide-terms-passes", "M", "terms_passes",
+     "envelope modes: widen the range each pixel's guide is held in towards that of Eq. 6's terms over its "
+     "3 x 3 window by the share 1 / (1 + N / M) for a render of N passes, each end by at most the range's "
+     "width (the anchor keeps to the estimates' range or the held guide); 0 = off (default: the checkpoint's)"),
+    ("--guide-anchor-spikes", "R", "anchor_spikes",
+     "envelope modes: keep the anchor from spreading the gap of a light of one or two pixels in its aim (RGB "
+     "mean above R x its second brightest neighbour's: a small light OIDN flattened) into its neighbours, "
+     "and set that pixel to the inverse-variance mean of ~y and ~z^4; 0 = off, else R > 1 (default: the "
+     "checkpoint's)"),
+)
 
 
 def build_parser() -> ArgumentParser:
@@ -102,32 +132,8 @@ def build_parser() -> ArgumentParser:
                         "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
-    p.add_argument("--guide-y-weight", type=float, default=None, metavar="F",
-                   help="weight of OIDN's image of ~y (hit point A) in the guide, F >= 0: mixed with "
-                        "OIDN's image of ~z^4 by the inverse of their inputs' local variances, ~y's "
-                        "times F; 0 = ~z^4's alone (default: the checkpoint's; the shipped model's 2)")
-    p.add_argument("--guide-y-spike", type=float, default=None, metavar="R",
-                   help="envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x "
-                        "above every ~z^j of the pixel and its own 3 x 3 median; 0 = off, else R > 1 "
-                        "(default: the checkpoint's; the shipped model's 8)")
-    p.add_argument("--guide-anchor-settled", type=float, default=None, metavar="R",
-                   help="envelope modes: the anchor acts only where its own low-pass is settled, its "
-                        "standard deviation below R x its level (helps next to small bright emitters, "
-                        "costs the glossy Cornell box's low frequencies; README); 0 = off (default: the "
-                        "checkpoint's; the shipped model's 0)")
-    p.add_argument("--guide-anchor-select", type=float, default=None, metavar="K",
-                   help="envelope modes: aim the anchor per pixel between its ~z^m (the shipped ~z^3) and "
-                        "the wider ~z^(m+1), at the wider one where their low-passes agree within K x "
-                        "~z^m's noise; 0 = ~z^m alone (default: the checkpoint's; the shipped model's 4)")
-    p.add_argument("--guide-terms-passes", type=float, default=None, metavar="M",
-                   help="envelope modes: widen each pixel's range towards that of Eq. 6's terms over its 3 x 3 "
-                        "window by the share 1 / (1 + N / M) for a render of N passes, each end by at most the "
-                        "range's width; 0 = off (default: the checkpoint's; the shipped model's 16)")
-    p.add_argument("--guide-anchor-spikes", type=float, default=None, metavar="R",
-                   help="envelope modes: keep the anchor from spreading the gap of an isolated bright pixel of its "
-                        "aim (RGB mean above R x its 3 x 3 median: a small light OIDN flattened) into its "
-                        "neighbours, and set that pixel to the inverse-variance mean of ~y and ~z^4; 0 = off "
-                        "(default: the checkpoint's)")
+    for flag, metavar, _, text in GUIDE_NUMBERS:
+        p.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -210,36 +216,15 @@ def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, swi
     return _with_guide_setting(guide, "quality", quality, OIDN_QUALITIES, option, switch)
 
 
-def with_guide_y_weight(guide: GuideConfig, weight: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``y_weight`` = ``weight`` (None: unchanged); errors named as
-    :func:`with_guide_quality` names them (the guide must be on; the value is checked by
-    :class:`.guide.GuideConfig`)."""
-    return _with_guide_number(guide, "y_weight", weight, option, switch)
-
-
-def with_guide_y_spike(guide: GuideConfig, ratio: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``y_spike`` = ``ratio`` (None: unchanged), as :func:`with_guide_y_weight`."""
-    return _with_guide_number(guide, "y_spike", ratio, option, switch)
-
-
-def with_guide_anchor_settled(guide: GuideConfig, ratio: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``anchor_settled`` = ``ratio`` (None: unchanged), as :func:`with_guide_y_weight`."""
-    return _with_guide_number(guide, "anchor_settled", ratio, option, switch)
-
-
-def with_guide_anchor_select(guide: GuideConfig, k: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``anchor_select`` = ``k`` (None: unchanged), as :func:`with_guide_y_weight`."""
-    return _with_guide_number(guide, "anchor_select", k, option, switch)
-
-
-def with_guide_terms_passes(guide: GuideConfig, m: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``terms_passes`` = ``m`` (None: unchanged), as :func:`with_guide_y_weight`."""
-    return _with_guide_number(guide, "terms_passes", m, option, switch)
-
-
-def with_guide_anchor_spikes(guide: GuideConfig, r: float | None, option: str, switch: str) -> GuideConfig:
-    """``guide`` with ``anchor_spikes`` = ``r`` (None: unchanged), as :func:`with_guide_y_weight`."""
-    return _with_guide_number(guide, "anchor_spikes", r, option, switch)
+def with_guide_numbers(guide: GuideConfig, values: Mapping[str, float | None], option_of: Callable[[str], str],
+                       switch: str) -> GuideConfig:
+    """``guide`` with each numeric setting of :data:`GUIDE_NUMBERS` whose value in ``values``
+    (GuideConfig key -> value) is not None; ``option_of(flag)`` and the guide's own
+    ``switch`` name the settings in the one-line error, as :func:`with_guide_quality` (the
+    guide must be on; each value is checked by :class:`.guide.GuideConfig`)."""
+    for flag, _, key, _ in GUIDE_NUMBERS:
+        guide = _with_guide_number(guide, key, values.get(key), option_of(flag), switch)
+    return guide
 
 
 def _with_guide_number(guide: GuideConfig, key: str, value: float | None, option: str, switch: str) -> GuideConfig:
@@ -318,12 +303,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
-    guide = with_guide_y_weight(guide, args.guide_y_weight, "--guide-y-weight", "--guide")
-    guide = with_guide_y_spike(guide, args.guide_y_spike, "--guide-y-spike", "--guide")
-    guide = with_guide_anchor_settled(guide, args.guide_anchor_settled, "--guide-anchor-settled", "--guide")
-    guide = with_guide_anchor_select(guide, args.guide_anchor_select, "--guide-anchor-select", "--guide")
-    guide = with_guide_terms_passes(guide, args.guide_terms_passes, "--guide-terms-passes", "--guide")
-    guide = with_guide_anchor_spikes(guide, args.guide_anchor_spikes, "--guide-anchor-spikes", "--guide")
+    guide = with_guide_numbers(guide, {key: getattr(args, flag[2:].replace("-", "_"))
+                                       for flag, _, key, _ in GUIDE_NUMBERS}, lambda flag: flag, "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
         raise UsageError(f"--weights-layers: the guide's {guide.mode} has no combination weights "
                          "(use --guide-mode weights, or --guide off)")
