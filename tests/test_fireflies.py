@@ -144,8 +144,21 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     no_anchor = denoise(buf, shipped, guard=replace(DEFAULT_ON, anchor=0), precision="float32").rgb
     off = denoise(buf, shipped, guard=GuardConfig(), precision="float32").rgb
     assert relmse(no_anchor, clean) <= relmse(off, clean) * 1.01
+    # held in the five estimates' range, or (the shipped terms range) in that range widened
+    # towards Eq. 6's terms for this render's N (guide.terms_range)
+    from ppmrecon.model.guard import passes_of
+    from ppmrecon.model.guide import terms_range, terms_share
+
+    narrow = denoise(buf, shipped, guard=DEFAULT_ON, guide=replace(shipped.guide, terms_passes=0.0),
+                     precision="float32").rgb
+    assert np.all(narrow >= buf.estimates.min(0)) and np.all(narrow <= buf.estimates.max(0))
     on = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32").rgb
-    assert np.all(on >= buf.estimates.min(0)) and np.all(on <= buf.estimates.max(0))
+    assert shipped.guide.terms_passes > 0
+    est = torch.from_numpy(buf.estimates).permute(0, 3, 1, 2)[None]
+    lo, hi = est.amin(1), est.amax(1)
+    wide_lo, wide_hi = terms_range(est[:, 0], est[:, 1:], lo, hi, terms_share(passes_of(buf), shipped.guide))
+    out = torch.from_numpy(on).permute(2, 0, 1)[None]
+    assert bool((out >= wide_lo - 1e-6).all() and (out <= wide_hi + 1e-6).all())
     # The anchor brings ~z^3's low frequencies where they differ from the output's; here every
     # ~z^j is an unbiased blurred copy, so there is no bias for it to remove and it trades
     # the y-mixed guide's low-frequency noise for ~z^3's (relMSE 0.85 -> 0.95 of the best
