@@ -146,7 +146,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
-            guide_anchor_spikes: float | None = None,
+            guide_anchor_spikes: float | None = None, guide_y_found: float | None = None,
             tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
@@ -175,7 +175,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     Eq. 6's terms by the share 1 / (1 + N / M) (M >= 0, 0 = off; None: the model's), as
     ``--guide-terms-passes``; ``guide_anchor_spikes``: the anchor kept from spreading an
     isolated bright pixel of its aim, that pixel set to the inverse-variance mean of ~y and
-    ~z^4 (factor R > 1, 0 = off; None: the model's), as ``--guide-anchor-spikes``; ``tile``,
+    ~z^4 (factor R > 1, 0 = off; None: the model's), as ``--guide-anchor-spikes``;
+    ``guide_y_found``: ~y's share in the guide scaled by the local share of pixels where ~y
+    caught a photon (Gaussian width in px, 0 = off; None: the model's), as
+    ``--guide-y-found``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -202,7 +205,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
     chosen = with_guide_numbers(chosen, {"y_weight": guide_y_weight, "y_spike": guide_y_spike,
                                          "anchor_settled": guide_anchor_settled, "anchor_select": guide_anchor_select,
-                                         "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes},
+                                         "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,
+                                         "y_found": guide_y_found},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

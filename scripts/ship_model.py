@@ -62,6 +62,8 @@ RESHIP_NUMBERS = (
                                    "bright pixel of its aim (R x above its 3 x 3 median), that pixel set to the "
                                    "inverse-variance mean of ~y and ~z^4 (GuideConfig.anchor_spikes; 0 = off)",
      "guide", "anchor_spikes"),
+    ("--guide-y-found", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
+                             "of S px, where ~y caught a photon (GuideConfig.y_found; 0 = off)", "guide", "y_found"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "

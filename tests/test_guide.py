@@ -250,6 +250,26 @@ def test_y_weight_mixes_oidn_of_y_into_the_guide_by_inverse_local_variance():
             GuideConfig(enabled=True, y_weight=bad)
 
 
+def test_y_found_keeps_a_photon_starved_y_out_of_the_guide():
+    """y_found s: ~y's share is scaled by the local share of pixels where ~y caught light (V_y > 0).
+    Where ~y's disc caught nothing (V_y = 0 over a region, its value 0) the share falls to 0
+    there; where every pixel saw a photon it is the plain share (the rule leaves many passes alone)."""
+    var = np.ones((5, 24, 24), np.float32)
+    var[0, :, :12] = 0.0                          # left half: ~y caught no photon
+    plain = y_share(var, 4, 2.0)
+    found = y_share(var, 4, 2.0, found=2.0)
+    assert float(plain[0, :, :4].min()) == pytest.approx(1.0)       # V_y = 0 reads as infinitely sure
+    assert float(found[0, :, :4].abs().max()) == 0.0                # starved: OIDN(~z^4) alone
+    torch.testing.assert_close(found[0, :, -4:], plain[0, :, -4:])  # all found: unchanged
+    assert bool((found <= plain + 1e-7).all())                      # it only ever lowers the share
+    everywhere = np.ones_like(var)
+    torch.testing.assert_close(y_share(everywhere, 4, 2.0, found=2.0), y_share(everywhere, 4, 2.0))
+    assert GuideConfig.from_dict({}).y_found == 0 and GuideConfig(y_found=2).y_found == 2
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="y_found"):
+            GuideConfig(y_found=bad)
+
+
 def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
     from ppmrecon.model.guide import despike
 
@@ -775,6 +795,22 @@ def test_cli_and_api_guide_anchor_spikes(tmp_path, capsys):
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-spikes")
     assert denoise_main(args + ["--guide-anchor-spikes", "1", "-o", str(tmp_path / "x.exr")]) == 2
     assert "--guide-anchor-spikes" in capsys.readouterr().err
+
+
+def test_cli_and_api_guide_y_found(tmp_path, capsys):
+    """--guide-y-found / guide_y_found= (the header says it; CLI and API agree; 0 turns it
+    off); negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=23)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    est[0, :, :12], var[0, :, :12] = 0.0, 0.0                # ~y caught no photon on the left
+    buf = replace(buf, estimates=est, variances=var)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-y-weight", "2"]
+    found = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-found", "4", " found=4",
+                               guide_y_weight=2.0, guide_y_found=4.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-found", "0", "y=2", guide_y_weight=2.0,
+                               guide_y_found=0.0)
+    assert not np.array_equal(found, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-found")
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

@@ -81,6 +81,10 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "mean above R x its second brightest neighbour's: a small light OIDN flattened) into its neighbours, "
      "and set that pixel to the inverse-variance mean of ~y and ~z^4; 0 = off, else R > 1 (default: the "
      "checkpoint's)"),
+    ("--guide-y-found", "S", "y_found",
+     "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y caught a photon "
+     "in some pass (its variance > 0): a photon-starved ~y reads black with variance 0; 0 = off (default: the "
+     "checkpoint's)"),
 )
 
 
@@ -357,8 +361,9 @@ def _guide_header(guide: GuideConfig) -> str:
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
+    found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
-            f"y={guide.y_weight:g}{spike}{settled}{select}{terms}{spikes}")
+            f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

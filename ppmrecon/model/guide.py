@@ -187,6 +187,11 @@ class GuideConfig:
     #: and gives that pixel the inverse-variance mean of ~y and ~z^4 (:func:`aim_spikes`);
     #: 0 = off (checkpoints without the setting read as 0)
     anchor_spikes: float = 0.0
+    #: > 0 scales ~y's share in the guide (:func:`y_share`) by the fraction of pixels, over a
+    #: Gaussian of this many px, where ~y found light in some pass (variance of the mean > 0):
+    #: where ~y's small disc caught no photon its variance reads 0 whatever the light there,
+    #: and the share would trust its black image; 0 = off (checkpoints without it read as 0)
+    y_found: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -238,6 +243,9 @@ class GuideConfig:
                 or not (self.anchor_spikes == 0 or (math.isfinite(self.anchor_spikes) and self.anchor_spikes > 1)):
             raise ValueError("guide setting 'anchor_spikes' must be 0 (off) or a finite factor > 1, "
                              f"got {self.anchor_spikes!r}")
+        if isinstance(self.y_found, bool) or not isinstance(self.y_found, (int, float)) \
+                or not math.isfinite(self.y_found) or self.y_found < 0:
+            raise ValueError(f"guide setting 'y_found' must be a width in px >= 0 (0 = off), got {self.y_found!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -347,7 +355,7 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
 
 
-def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
+def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0) -> torch.Tensor:
     """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
 
         w = f Vbar_s / (Vbar_y + f Vbar_s),   Vbar = G_sigma * V
@@ -358,13 +366,21 @@ def y_share(variances: np.ndarray, source: int, weight: float) -> torch.Tensor:
     by f more (the shipped f = 2 lies between the validation images' best, 4, and the
     study scenes', 1; ``bench_guide.py``). Where neither input is noisy, 0. Many passes
     make ~y's noise the larger, so w falls with N.
+
+    With ``found`` = s > 0, w is multiplied by G_s * [V_y > 0], the local share of pixels
+    where ~y caught a photon in some pass: a photon-starved ~y (thin light leaks at a few
+    passes) reads 0 with variance 0 and would otherwise take the guide to black. The factor
+    is 1 once every pixel has seen a photon, so it leaves renders of many passes alone.
     """
     from .guard import gaussian_lowpass
 
-    v = gaussian_lowpass(torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))[None],
-                         Y_WEIGHT_SIGMA)[0]
+    raw = torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))[None]
+    v = gaussian_lowpass(raw, Y_WEIGHT_SIGMA)[0]
     vs = weight * v[1:2]
-    return vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
+    w = vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
+    if found:
+        w = w * gaussian_lowpass((raw[:, :1] > 0).to(raw.dtype), found)[0]
+    return w
 
 
 class GuideImages(NamedTuple):
@@ -401,7 +417,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             apart = torch.maximum(a / b, b / a) > cfg.cross
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
         if mix_y:
-            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight))
+            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found))
     elif need_y:
         gy = g                                          # the source is ~y itself
     return GuideImages(g, g_source, gy)
