@@ -188,9 +188,10 @@ class GuideConfig:
     #: 0 = off (checkpoints without the setting read as 0)
     anchor_spikes: float = 0.0
     #: > 0 scales ~y's share in the guide (:func:`y_share`) by the fraction of pixels, over a
-    #: Gaussian of this many px, where ~y found light in some pass (variance of the mean > 0):
-    #: where ~y's small disc caught no photon its variance reads 0 whatever the light there,
-    #: and the share would trust its black image; 0 = off (checkpoints without it read as 0)
+    #: Gaussian of this many px, where ~y saw light in some pass (variance of the mean > 0, or
+    #: ~y > 0): where ~y's small disc caught no photon it reads 0 with variance 0 whatever the
+    #: light there, and the share would trust its black image; 0 = off (checkpoints without it
+    #: read as 0)
     y_found: float = 0.0
 
     def __post_init__(self) -> None:
@@ -355,7 +356,8 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
 
 
-def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0) -> torch.Tensor:
+def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
+            y: np.ndarray | None = None) -> torch.Tensor:
     """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
 
         w = f Vbar_s / (Vbar_y + f Vbar_s),   Vbar = G_sigma * V
@@ -367,10 +369,12 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     study scenes', 1; ``bench_guide.py``). Where neither input is noisy, 0. Many passes
     make ~y's noise the larger, so w falls with N.
 
-    With ``found`` = s > 0, w is multiplied by G_s * [V_y > 0], the local share of pixels
-    where ~y caught a photon in some pass: a photon-starved ~y (thin light leaks at a few
-    passes) reads 0 with variance 0 and would otherwise take the guide to black. The factor
-    is 1 once every pixel has seen a photon, so it leaves renders of many passes alone.
+    With ``found`` = s > 0, w is multiplied by G_s * [V_y > 0 or ~y > 0] (``y`` (H, W, 3), ~y
+    itself), the local share of pixels where ~y saw light in some pass: a photon-starved ~y
+    (thin light leaks at a few passes) reads 0 with variance 0 and would otherwise take the
+    guide to black, while an emitter seen directly reads its constant radiance with variance 0
+    and is right. The factor is 1 once every pixel has seen light, so it leaves renders of
+    many passes alone.
     """
     from .guard import gaussian_lowpass
 
@@ -379,7 +383,10 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     vs = weight * v[1:2]
     w = vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
     if found:
-        w = w * gaussian_lowpass((raw[:, :1] > 0).to(raw.dtype), found)[0]
+        seen = raw[:, :1] > 0
+        if y is not None:
+            seen = seen | torch.from_numpy(np.ascontiguousarray(y, np.float32)).amax(-1)[None, None].gt(0)
+        w = w * gaussian_lowpass(seen.to(raw.dtype), found)[0]
     return w
 
 
@@ -417,7 +424,8 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             apart = torch.maximum(a / b, b / a) > cfg.cross
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
         if mix_y:
-            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found))
+            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found,
+                                                 estimates[0]))
     elif need_y:
         gy = g                                          # the source is ~y itself
     return GuideImages(g, g_source, gy)
