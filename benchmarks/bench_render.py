@@ -174,6 +174,7 @@ def plot(conv: dict, path: Path) -> None:
 
 
 METHODS = ("sppm", "cppm", "fppm", "appm")
+#: Steady-state passes: the integrator's "start" stage (the first pass's k-NN radii) is 0.
 STAGES = ("photons", "eye", "grid", "gather", "update")
 #: Targets of issue 17 (ratios measured in one run).
 TARGET_VS_PATH, TARGET_VS_SINGLE, TARGET_GPU_MS, TARGET_MEMORY_GB = 1.0, 1.3, 20.0, 4.0
