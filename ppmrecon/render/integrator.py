@@ -130,12 +130,16 @@ def scene_radius(scene: mi.Scene) -> float:
     return 0.5 * float(dr.norm(mi.ScalarVector3f(bbox.max) - mi.ScalarVector3f(bbox.min)))
 
 
-def knn_radius(points: GatherPoints, photon_p: mi.Point3f, k: int, r_lo: float, r_hi: float) -> np.ndarray:
+def knn_radius(points: GatherPoints, photon_p: mi.Point3f, k: int, r_lo: float, r_hi: float,
+               wanted: np.ndarray | None = None) -> np.ndarray:
     """Distance from each gather point to its k-th nearest photon (paper 002 Sec. 4.1),
-    clamped to [r_lo, r_hi]; NaN where the eye path found no surface."""
+    clamped to [r_lo, r_hi]; NaN where the eye path found no surface, or where the boolean
+    mask ``wanted`` (one per point) is False: only those are queried."""
     from scipy.spatial import cKDTree
 
     found = np.asarray(points.found)
+    if wanted is not None:
+        found = found & wanted
     out = np.full(found.shape, np.nan, np.float64)
     photons = np.asarray(photon_p).T if dr.width(photon_p) else np.zeros((0, 3))
     if photons.shape[0] == 0 or not found.any():
@@ -267,8 +271,8 @@ class Renderer:
         r = knn_radius(points[0], photon_p, k, r_lo, r_hi)
         for other in points[1:]:  # where A found no surface, use B's
             missing = np.isnan(r)
-            if missing.any():
-                r[missing] = knn_radius(other, photon_p, k, r_lo, r_hi)[missing]
+            if missing.any():  # the few pixels A missed only (a query of all took as long as A's)
+                r[missing] = knn_radius(other, photon_p, k, r_lo, r_hi, wanted=missing)[missing]
         missing = np.isnan(r)
         fallback = float(np.median(r[~missing])) if (~missing).any() else r_hi
         r[missing] = fallback
