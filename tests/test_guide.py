@@ -16,7 +16,8 @@ from ppmrecon.model.cli import main as denoise_main
 from ppmrecon.model.combine import combine, term_bounds
 from ppmrecon.model.features import FeatureConfig
 from ppmrecon.model.guard import DEFAULT_ON
-from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig, guide_planes, oidn_image, prior_logits, y_share
+from ppmrecon.model.guide import (DEFAULT_GUIDE, GuideConfig, effective_events, guide_planes, oidn_image,
+                                  prior_logits, y_share)
 from ppmrecon.model.infer import buffer_guide, denoise
 from ppmrecon.model.kpn import build
 from tests.conftest import make_buffer
@@ -251,24 +252,37 @@ def test_y_weight_mixes_oidn_of_y_into_the_guide_by_inverse_local_variance():
 
 
 def test_y_found_keeps_a_photon_starved_y_out_of_the_guide():
-    """y_found s: ~y's share is scaled by the local share of pixels where ~y caught light (V_y > 0).
-    Where ~y's disc caught nothing (V_y = 0 over a region, its value 0) the share falls to 0
-    there; where every pixel saw a photon it is the plain share (the rule leaves many passes alone)."""
-    var = np.ones((5, 24, 24), np.float32)
-    var[0, :, :12] = 0.0                          # left half: ~y caught no photon
+    """y_found S: ~y's share is scaled by the local share of pixels where ~y is not sparser than
+    the source (effective events mean^2 / V below 1 where the source's are not). Where ~y's disc
+    caught nothing (V_y = 0, ~y = 0) next to a well-lit source the share falls to 0; where ~y
+    has its photons, where the source is as sparse, or at an emitter seen directly (lit, V_y = 0)
+    it is the plain share (the rule leaves many passes alone)."""
+    h, w = 24, 48
+    est = np.ones((5, h, w, 3), np.float32)
+    var = np.full((5, h, w), 0.01, np.float32)          # 100 events everywhere ...
+    est[0, :, :12], var[0, :, :12] = 0.0, 0.0           # ... but ~y caught nothing on the left
+    est[0, :, 24:36], var[0, :, 24:36] = 0.0, 0.0       # nor here, where the source is as sparse:
+    var[4, :, 24:36] = 4.0                              # 1 / 4 of an event
+    var[0, :, 36:] = 0.0                                # an emitter: lit, variance 0
     plain = y_share(var, 4, 2.0)
-    found = y_share(var, 4, 2.0, found=2.0)
+    found = y_share(var, 4, 2.0, found=2.0, estimates=est)
     assert float(plain[0, :, :4].min()) == pytest.approx(1.0)       # V_y = 0 reads as infinitely sure
     assert float(found[0, :, :4].abs().max()) == 0.0                # starved: OIDN(~z^4) alone
-    torch.testing.assert_close(found[0, :, -4:], plain[0, :, -4:])  # all found: unchanged
+    for cols in (slice(19, 23), slice(28, 32), slice(42, 48)):      # ~y lit, equally sparse, emitter
+        torch.testing.assert_close(found[0, :, cols], plain[0, :, cols])
     assert bool((found <= plain + 1e-7).all())                      # it only ever lowers the share
-    everywhere = np.ones_like(var)
-    torch.testing.assert_close(y_share(everywhere, 4, 2.0, found=2.0), y_share(everywhere, 4, 2.0))
+    lit = est.copy()
+    lit[0] = 1.0
+    lit_var = np.full_like(var, 0.01)
+    torch.testing.assert_close(y_share(lit_var, 4, 2.0, found=2.0, estimates=lit), y_share(lit_var, 4, 2.0))
+    torch.testing.assert_close(y_share(var, 4, 2.0, found=2.0), plain)   # no estimates: off
+    assert float(effective_events(torch.tensor([0.0, 2.0, 3.0]), torch.tensor([0.0, 4.0, 0.0]))[0]) == 0.0
+    k = effective_events(torch.tensor([0.0, 2.0, 3.0]), torch.tensor([0.0, 4.0, 0.0]))
+    assert float(k[1]) == pytest.approx(1.0) and float(k[2]) > 1e30
     assert GuideConfig.from_dict({}).y_found == 0 and GuideConfig(y_found=2).y_found == 2
     for bad in (-1.0, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="y_found"):
             GuideConfig(y_found=bad)
-
 
 def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
     from ppmrecon.model.guide import despike

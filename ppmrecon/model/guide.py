@@ -188,10 +188,10 @@ class GuideConfig:
     #: 0 = off (checkpoints without the setting read as 0)
     anchor_spikes: float = 0.0
     #: > 0 scales ~y's share in the guide (:func:`y_share`) by the fraction of pixels, over a
-    #: Gaussian of this many px, where ~y saw light in some pass (variance of the mean > 0, or
-    #: ~y > 0): where ~y's small disc caught no photon it reads 0 with variance 0 whatever the
-    #: light there, and the share would trust its black image; 0 = off (checkpoints without it
-    #: read as 0)
+    #: Gaussian of this many px, where ~y is not sparser than the source estimate: fewer than
+    #: one photon event's worth (mean^2 / variance of the mean < 1, or ~y = 0) where the source
+    #: has more. A photon-starved ~y reads 0 with variance 0 whatever the light there, and
+    #: the share would trust its black image; 0 = off (checkpoints without it read as 0)
     y_found: float = 0.0
 
     def __post_init__(self) -> None:
@@ -356,8 +356,17 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
 
 
+def effective_events(mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
+    """mean^2 / variance of the mean: about the number of independent photon events behind
+    an estimate (Poisson: the mean of k events of one size has relative variance 1/k); 0
+    where the mean is 0 (nothing seen), unbounded where it is lit with variance 0 (an
+    emitter seen directly)."""
+    return torch.where(mean > 0, mean * mean / variance.clamp(min=torch.finfo(variance.dtype).tiny),
+                       torch.zeros_like(mean))
+
+
 def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
-            y: np.ndarray | None = None) -> torch.Tensor:
+            estimates: np.ndarray | None = None) -> torch.Tensor:
     """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
 
         w = f Vbar_s / (Vbar_y + f Vbar_s),   Vbar = G_sigma * V
@@ -369,24 +378,26 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     study scenes', 1; ``bench_guide.py``). Where neither input is noisy, 0. Many passes
     make ~y's noise the larger, so w falls with N.
 
-    With ``found`` = s > 0, w is multiplied by G_s * [V_y > 0 or ~y > 0] (``y`` (H, W, 3), ~y
-    itself), the local share of pixels where ~y saw light in some pass: a photon-starved ~y
-    (thin light leaks at a few passes) reads 0 with variance 0 and would otherwise take the
-    guide to black, while an emitter seen directly reads its constant radiance with variance 0
-    and is right. The factor is 1 once every pixel has seen light, so it leaves renders of
-    many passes alone.
+    With ``found`` = S > 0 (and ``estimates`` (5, H, W, 3)), w is multiplied by
+    G_S * [not (k_y < 1 <= k_s)], k the :func:`effective_events` of ~y and of the source
+    (RGB means): the local share of pixels where ~y is not sparser than the source. A
+    photon-starved ~y (thin light leaks at a few passes) reads 0 with variance 0, or rests
+    on less than one event, and would otherwise take the guide to black; where the source
+    is as sparse (next to a small light, where ~y's image keeps the source's fireflies out
+    of the guide) the share stays. The factor is 1 once ~y has seen its photons, so it
+    leaves renders of many passes alone.
     """
     from .guard import gaussian_lowpass
 
-    raw = torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))[None]
-    v = gaussian_lowpass(raw, Y_WEIGHT_SIGMA)[0]
+    raw = torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))
+    v = gaussian_lowpass(raw[None], Y_WEIGHT_SIGMA)[0]
     vs = weight * v[1:2]
     w = vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
-    if found:
-        seen = raw[:, :1] > 0
-        if y is not None:
-            seen = seen | torch.from_numpy(np.ascontiguousarray(y, np.float32)).amax(-1)[None, None].gt(0)
-        w = w * gaussian_lowpass(seen.to(raw.dtype), found)[0]
+    if found and estimates is not None:
+        means = torch.from_numpy(np.ascontiguousarray(estimates[[0, source]], np.float32)).mean(-1)
+        k = effective_events(means, raw)
+        sparser = (k[0] < 1.0) & (k[1] >= 1.0)
+        w = w * gaussian_lowpass((~sparser).to(raw.dtype)[None, None], found)[0]
     return w
 
 
@@ -424,8 +435,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             apart = torch.maximum(a / b, b / a) > cfg.cross
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
         if mix_y:
-            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found,
-                                                 estimates[0]))
+            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found, estimates))
     elif need_y:
         gy = g                                          # the source is ~y itself
     return GuideImages(g, g_source, gy)
