@@ -68,6 +68,9 @@ RESHIP_NUMBERS = (
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
                            "its 5 x 5 window are within 4x of it (GuardConfig.peers; 0 = off)", "guard", "peers"),
+    ("--guard-mutual", "R", "ship with the guard's mutual confirmation: no outlier where ~y and a ~z^j of the "
+                            "pixel each have sqrt(V)/mean < R and lie within the confirm factor of each other "
+                            "(GuardConfig.mutual; 0 = off)", "guard", "mutual"),
 )
 
 #: Settings of :data:`RESHIP_NUMBERS` that are indices, not numbers: parsed as integers.

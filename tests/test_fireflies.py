@@ -459,6 +459,40 @@ def test_a_sparse_speckle_field_is_no_outlier_with_peers_but_a_lone_firefly_is()
     assert not bool(late.any())
 
 
+def test_a_light_both_hit_points_see_over_several_passes_is_no_outlier_with_mutual():
+    """``GuardConfig.mutual`` (issue 12, ``0069_caustic_paths`` N = 16): a small emitter that
+    partly covers a pixel flickers at both hit points, so neither ~y nor the ~z^j is settled
+    and the plain guard replaced all five by their 3 x 3 medians (the pixel went black). With
+    ``mutual`` r1, ~y and a ~z^j within the confirm factor of each other, each below
+    sqrt(V)/X = r1, keep the pixel. The issue's shared-photon firefly (one pass in all five,
+    sqrt(V)/X = 1), a flickering ~y over a dark ~z^j and a lone ~z^j event are still caught."""
+    h = w = 24
+    est = np.full((5, h, w, 3), 0.01, np.float32)
+    var = np.full((5, h, w), (0.01 * 0.01) ** 2, np.float32)
+    light, shared, y_only, z_only = (6, 6), (6, 17), (17, 6), (17, 17)
+    est[0][light], var[0][light] = 0.75, (0.69 * 0.75) ** 2       # A: a few passes saw it
+    est[1:, light[0], light[1]], var[1:, light[0], light[1]] = 1.12, (0.54 * 1.12) ** 2   # B as well
+    est[:, shared[0], shared[1]], var[:, shared[0], shared[1]] = 500.0, 500.0 ** 2        # one pass, all five
+    est[0][y_only], var[0][y_only] = 0.75, (0.69 * 0.75) ** 2     # A flickers, B dark
+    est[1:, z_only[0], z_only[1]], var[1:, z_only[0], z_only[1]] = 1.12, (0.54 * 1.12) ** 2  # B alone
+    t = lambda a: torch.from_numpy(a)[None]                 # noqa: E731
+    args = (t(est).permute(0, 1, 4, 2, 3), t(var), torch.tensor([16.0]))
+    plain = find_outliers(*args, DEFAULT_ON)[0]
+    mutual = find_outliers(*args, replace(DEFAULT_ON, mutual=0.75))[0]
+    assert bool(plain[:, light[0], light[1]].all())                  # the plain guard takes the light
+    assert not bool(mutual[:, light[0], light[1]].any())             # both hit points: kept
+    for r, c in (shared, y_only):
+        assert bool(mutual[:, r, c].any()) and torch.equal(mutual[:, r, c], plain[:, r, c])
+    assert bool(mutual[1:, z_only[0], z_only[1]].all())
+    assert bool((mutual <= plain).all())                              # it only switches replacements off
+    late = find_outliers(args[0], args[1], torch.tensor([1e12]), replace(DEFAULT_ON, mutual=0.75))
+    assert not bool(late.any())                                       # eventually the identity
+    assert GuardConfig.from_dict({"enabled": True}).mutual == 0
+    for bad in (-0.1, 1.0, 2.0, float("nan")):
+        with pytest.raises(ValueError, match="mutual"):
+            GuardConfig(enabled=True, mutual=bad)
+
+
 def test_a_y_value_that_hit_point_b_saw_over_many_passes_is_no_outlier():
     """``GuardConfig.confirm`` (issue 12, ``0021_caustic_paths``): ~y far above its 3 x 3
     median with few passes behind it is an outlier, unless a ~z^j of the same pixel is

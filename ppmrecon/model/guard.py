@@ -236,11 +236,17 @@ class GuardConfig:
     #: the same estimate are unsettled and within :data:`PEER_RATIO` of it (:func:`speckled`:
     #: a sparse photon speckle field, not a lone firefly); 0 = off (checkpoints without it read as 0)
     peers: float = 0.0
+    #: r1 > 0: no estimate of a pixel is an outlier where ~y and a ~z^j of it (the two
+    #: independent hit points A and B) are each below sqrt(V)/Xbar = r1 (more than one pass
+    #: behind each: r1 < 1) and within ``confirm`` (else 4) of each other
+    #: (:func:`mutually_confirmed`: a small light both see, not a one-pass event); 0 = off
+    #: (checkpoints without it read as 0)
+    mutual: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise ValueError(f"guard setting 'enabled' must be true or false, got {self.enabled!r}")
-        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor", "confirm", "peers"):
+        for key in ("threshold", "growth", "min_rel_error", "band", "floor", "anchor", "confirm", "peers", "mutual"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ValueError(f"guard setting '{key}' must be a finite number, got {value!r}")
@@ -253,6 +259,8 @@ class GuardConfig:
             raise ValueError(f"guard setting 'anchor' must be 0 (off) or a blur width > 0 in pixels, got {self.anchor}")
         if self.confirm != 0 and self.confirm <= 1:
             raise ValueError(f"guard setting 'confirm' must be 0 (off) or a factor > 1, got {self.confirm}")
+        if self.mutual < 0 or self.mutual >= 1:
+            raise ValueError(f"guard setting 'mutual' must be 0 (off) or a ratio in (0, 1), got {self.mutual}")
         if self.peers < 0 or self.peers != int(self.peers) or self.peers > PEER_WINDOW ** 2 - 1:
             raise ValueError(f"guard setting 'peers' must be 0 (off) or a whole count of "
                              f"1..{PEER_WINDOW ** 2 - 1} neighbours, got {self.peers}")
@@ -306,6 +314,8 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
         mask[idx] = lum[idx] > g.view(b)[idx[0]] * (med + eps.view(b)[idx[0]])
     if cfg.confirm:
         mask[:, 0] &= ~confirmed(lum, variances, cfg)
+    if cfg.mutual:
+        mask &= ~mutually_confirmed(lum, variances, cfg)[:, None]
     if cfg.peers:
         idx = mask.nonzero(as_tuple=True)
         if idx[0].numel():
@@ -351,6 +361,26 @@ def confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfig) -> t
     """
     z = lum[:, 1:]
     return (settled_mask(z, variances[:, 1:], cfg.min_rel_error) & (cfg.confirm * z >= lum[:, :1])).any(1)
+
+
+def mutually_confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:
+    """Where the two hit points confirm each other, (B, H, W) bool: ~y (hit point A) and some
+    ~z^j (hit point B) each have sqrt(V)/Xbar < ``cfg.mutual`` and lie within ``cfg.confirm``
+    (4 when that is off) of each other. ``lum`` (B, 5, H, W) the estimates' RGB means.
+
+    A small emitter seen directly, partly covering the pixel, flickers from pass to pass at
+    both hit points, so neither is settled at a few passes (``0069_caustic_paths`` N = 16:
+    ~y 0.75 and every ~z^j 1.12 at sqrt(V)/Xbar 0.69 and 0.54, reference 1.12) and every
+    estimate was replaced by its 3 x 3 median (0.001): the pixel went black. A one-pass
+    event, also one photon both gathers shared, has sqrt(V)/Xbar ~ 1 at both and is still
+    caught; two independent eye paths each seeing the same light over several passes is
+    light. Not replacing a pixel costs no consistency.
+    """
+    c = cfg.confirm or 4.0
+    y, z = lum[:, :1], lum[:, 1:]
+    a = settled_mask(y, variances[:, :1], cfg.mutual)
+    b = settled_mask(z, variances[:, 1:], cfg.mutual) & (c * z >= y) & (c * y >= z)
+    return a[:, 0] & b.any(1)
 
 
 def settled_mask(mean: torch.Tensor, variance: torch.Tensor, r0: float) -> torch.Tensor:
