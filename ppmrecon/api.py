@@ -177,7 +177,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     isolated bright pixel of its aim, that pixel set to the inverse-variance mean of ~y and
     ~z^4 (factor R > 1, 0 = off; None: the model's), as ``--guide-anchor-spikes``;
     ``guide_y_found``: ~y's share in the guide scaled by the local share of pixels where ~y
-    caught a photon (Gaussian width in px, 0 = off; None: the model's), as
+    is not sparser than ~z^4 (Gaussian width in px, 0 = off; None: the model's), as
     ``--guide-y-found``; ``tile``,
     ``device``, ``precision`` as its options.
 

@@ -63,7 +63,7 @@ RESHIP_NUMBERS = (
                                    "inverse-variance mean of ~y and ~z^4 (GuideConfig.anchor_spikes; 0 = off)",
      "guide", "anchor_spikes"),
     ("--guide-y-found", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
-                             "of S px, where ~y caught a photon (GuideConfig.y_found; 0 = off)", "guide", "y_found"),
+                             "of S px, where ~y is not sparser than ~z^4 (GuideConfig.y_found; 0 = off)", "guide", "y_found"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "

@@ -15,9 +15,8 @@ from ppmrecon.model import checkpoint as C
 from ppmrecon.model.cli import main as denoise_main
 from ppmrecon.model.combine import combine, term_bounds
 from ppmrecon.model.features import FeatureConfig
-from ppmrecon.model.guard import DEFAULT_ON
-from ppmrecon.model.guide import (DEFAULT_GUIDE, GuideConfig, effective_events, guide_planes, oidn_image,
-                                  prior_logits, y_share)
+from ppmrecon.model.guard import DEFAULT_ON, settled_mask
+from ppmrecon.model.guide import DEFAULT_GUIDE, GuideConfig, guide_planes, oidn_image, prior_logits, y_share
 from ppmrecon.model.infer import buffer_guide, denoise
 from ppmrecon.model.kpn import build
 from tests.conftest import make_buffer
@@ -276,9 +275,9 @@ def test_y_found_keeps_a_photon_starved_y_out_of_the_guide():
     lit_var = np.full_like(var, 0.01)
     torch.testing.assert_close(y_share(lit_var, 4, 2.0, found=2.0, estimates=lit), y_share(lit_var, 4, 2.0))
     torch.testing.assert_close(y_share(var, 4, 2.0, found=2.0), plain)   # no estimates: off
-    assert float(effective_events(torch.tensor([0.0, 2.0, 3.0]), torch.tensor([0.0, 4.0, 0.0]))[0]) == 0.0
-    k = effective_events(torch.tensor([0.0, 2.0, 3.0]), torch.tensor([0.0, 4.0, 0.0]))
-    assert float(k[1]) == pytest.approx(1.0) and float(k[2]) > 1e30
+    # more than one event: nothing seen is none, an emitter seen directly (variance 0) is plenty
+    events = settled_mask(torch.tensor([0.0, 2.0, 2.0, 3.0]), torch.tensor([0.0, 4.0, 3.0, 0.0]), 1.0)
+    assert events.tolist() == [False, False, True, True]
     assert GuideConfig.from_dict({}).y_found == 0 and GuideConfig(y_found=2).y_found == 2
     for bad in (-1.0, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="y_found"):

@@ -82,9 +82,9 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "and set that pixel to the inverse-variance mean of ~y and ~z^4; 0 = off, else R > 1 (default: the "
      "checkpoint's)"),
     ("--guide-y-found", "S", "y_found",
-     "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y caught a photon "
-     "in some pass (its variance > 0): a photon-starved ~y reads black with variance 0; 0 = off (default: the "
-     "checkpoint's)"),
+     "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y is not sparser "
+     "than ~z^4 (under one photon event, mean^2 / variance < 1, where ~z^4 has more): a photon-starved ~y "
+     "reads black with variance 0; 0 = off (default: the checkpoint's)"),
 )
 
 

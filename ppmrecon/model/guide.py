@@ -356,15 +356,6 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
 
 
-def effective_events(mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
-    """mean^2 / variance of the mean: about the number of independent photon events behind
-    an estimate (Poisson: the mean of k events of one size has relative variance 1/k); 0
-    where the mean is 0 (nothing seen), unbounded where it is lit with variance 0 (an
-    emitter seen directly)."""
-    return torch.where(mean > 0, mean * mean / variance.clamp(min=torch.finfo(variance.dtype).tiny),
-                       torch.zeros_like(mean))
-
-
 def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
             estimates: np.ndarray | None = None) -> torch.Tensor:
     """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
@@ -379,15 +370,17 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     make ~y's noise the larger, so w falls with N.
 
     With ``found`` = S > 0 (and ``estimates`` (5, H, W, 3)), w is multiplied by
-    G_S * [not (k_y < 1 <= k_s)], k the :func:`effective_events` of ~y and of the source
-    (RGB means): the local share of pixels where ~y is not sparser than the source. A
+    G_S * [not (k_y < 1 <= k_s)], k = mean^2 / V about the number of photon events behind ~y
+    and behind the source (RGB means; k >= 1 is :func:`.guard.settled_mask` at r0 = 1, 0 where
+    nothing was seen, unbounded at an emitter seen directly): the local share of pixels where
+    ~y is not sparser than the source. A
     photon-starved ~y (thin light leaks at a few passes) reads 0 with variance 0, or rests
     on less than one event, and would otherwise take the guide to black; where the source
     is as sparse (next to a small light, where ~y's image keeps the source's fireflies out
     of the guide) the share stays. The factor is 1 once ~y has seen its photons, so it
     leaves renders of many passes alone.
     """
-    from .guard import gaussian_lowpass
+    from .guard import gaussian_lowpass, settled_mask
 
     raw = torch.from_numpy(np.ascontiguousarray(variances[[0, source]], np.float32))
     v = gaussian_lowpass(raw[None], Y_WEIGHT_SIGMA)[0]
@@ -395,8 +388,8 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     w = vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
     if found and estimates is not None:
         means = torch.from_numpy(np.ascontiguousarray(estimates[[0, source]], np.float32)).mean(-1)
-        k = effective_events(means, raw)
-        sparser = (k[0] < 1.0) & (k[1] >= 1.0)
+        events = settled_mask(means, raw, 1.0)                 # mean^2 / V > 1: more than one event
+        sparser = ~events[0] & events[1]
         w = w * gaussian_lowpass((~sparser).to(raw.dtype)[None, None], found)[0]
     return w
 
