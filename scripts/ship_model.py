@@ -71,6 +71,8 @@ RESHIP_NUMBERS = (
     ("--guard-mutual", "R", "ship with the guard's mutual confirmation: no outlier where ~y and a ~z^j of the "
                             "pixel each have sqrt(V)/mean < R and lie within the confirm factor of each other "
                             "(GuardConfig.mutual; 0 = off)", "guard", "mutual"),
+    ("--guard-edge", "E", "ship with the guard's light-edge rule: no outlier where a settled pixel of its 3 x 3 "
+                          "window is at least E x its value (GuardConfig.edge; 0 = off)", "guard", "edge"),
 )
 
 #: Settings of :data:`RESHIP_NUMBERS` that are indices, not numbers: parsed as integers.

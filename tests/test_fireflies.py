@@ -493,6 +493,44 @@ def test_a_light_both_hit_points_see_over_several_passes_is_no_outlier_with_mutu
             GuardConfig(enabled=True, mutual=bad)
 
 
+def test_the_unsettled_edge_of_a_small_light_is_no_outlier_with_edge():
+    """``GuardConfig.edge`` (issue 12, ``0108_bright_emitters`` N = 64): a pixel on the edge
+    of a small emitter sees it in some passes only, so all five estimates are unsettled and
+    far above their mostly dark 3 x 3 median; the plain guard replaced them by it (a black
+    dot, 0.0005, where every input was 0.17 and the reference 0.53). With ``edge`` e, a
+    candidate beside a settled pixel at least e x its value is kept. The issue's box
+    firefly (far above a settled neighbour), a firefly beside an *unsettled* bright pixel
+    and a lone firefly are still caught."""
+    h = w = 24
+    est = np.full((5, h, w, 3), 1e-4, np.float32)                  # a dark room around small lights
+    var = np.full((5, h, w), (0.01 * 1e-4) ** 2, np.float32)
+    light, edge, above, beside_event, lone = (6, 6), (6, 7), (17, 7), (6, 17), (17, 17)
+    est[:, light[0], light[1]], var[:, light[0], light[1]] = 4.13, (0.16 * 4.13) ** 2   # a settled emitter pixel
+    est[:, edge[0], edge[1]], var[:, edge[0], edge[1]] = 0.17, 0.17 ** 2                # one event at its edge
+    est[:, 17, 6], var[:, 17, 6] = 0.28, (0.05 * 0.28) ** 2                             # the box: a lit wall pixel
+    est[:, above[0], above[1]], var[:, above[0], above[1]] = 489.0, 489.0 ** 2          # and a shared-photon firefly
+    est[:, 6, 16], var[:, 6, 16] = 4.13, 4.13 ** 2                                      # a one-pass bright pixel
+    est[:, beside_event[0], beside_event[1]], var[:, beside_event[0], beside_event[1]] = 0.17, 0.17 ** 2
+    est[:, lone[0], lone[1]], var[:, lone[0], lone[1]] = 50.0, 50.0 ** 2
+    t = lambda a: torch.from_numpy(a)[None]                 # noqa: E731
+    args = (t(est).permute(0, 1, 4, 2, 3), t(var), torch.tensor([64.0]))
+    plain = find_outliers(*args, DEFAULT_ON)[0]
+    edged = find_outliers(*args, replace(DEFAULT_ON, edge=1.0))[0]
+    assert bool(plain[:, edge[0], edge[1]].all())                    # the plain guard blacks the edge out
+    assert not bool(edged[:, edge[0], edge[1]].any())                # beside a settled light: kept
+    for r, c in (above, beside_event, lone):
+        assert bool(edged[:, r, c].all()) and torch.equal(edged[:, r, c], plain[:, r, c])
+    assert bool((edged <= plain).all())                               # it only switches replacements off
+    # a stricter ratio: the light must be at least 30x the candidate (4.13 < 30 x 0.17)
+    assert bool(find_outliers(*args, replace(DEFAULT_ON, edge=30.0))[0][:, edge[0], edge[1]].all())
+    late = find_outliers(args[0], args[1], torch.tensor([1e12]), replace(DEFAULT_ON, edge=1.0))
+    assert not bool(late.any())                                       # eventually the identity
+    assert GuardConfig.from_dict({"enabled": True}).edge == 0
+    for bad in (-0.1, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="edge"):
+            GuardConfig(enabled=True, edge=bad)
+
+
 def test_a_y_value_that_hit_point_b_saw_over_many_passes_is_no_outlier():
     """``GuardConfig.confirm`` (issue 12, ``0021_caustic_paths``): ~y far above its 3 x 3
     median with few passes behind it is an outlier, unless a ~z^j of the same pixel is
