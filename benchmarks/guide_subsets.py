@@ -6,7 +6,8 @@
 Each data-set image is put in the first group whose indices hold its scene's index (the
 number its folder name starts with: ``0069_caustic_paths`` is 69); the rest form the group
 ``unselected``. Per group and variant: images, the geometric means of relMSE and 8x8-block
-relMSE over the image's best single input, and the images above their best input; then the
+relMSE over the image's best single input, and the images above their best input (with the
+same for relMSE on images divided by the reference's mean where the result has it); then the
 images above their best input for any variant, one line each. Use it to tell the scenes a
 setting was chosen on from those it never saw.
 """
@@ -54,7 +55,8 @@ def main() -> None:
         i = scene_index(r["scene"])
         name = next((g for g, members in groups if i in members), "unselected")
         by_group.setdefault(name, []).append(r)
-    print("| group | images | " + " | ".join(f"{n}: relMSE / 8x8, worse" for n in names) + " |")
+    print("| group | images | " + " | ".join(f"{n}: relMSE / 8x8, worse (scaled: relMSE, worse)" for n in names)
+          + " |")
     print("|---|---:|" + "---|" * len(names))
     for name in [g for g, _ in groups] + ["unselected"]:
         members = by_group.get(name, [])
@@ -65,7 +67,11 @@ def main() -> None:
             ratio = math.exp(sum(math.log(r["variants"][n]["ratio"]) for r in members) / len(members))
             blocks = math.exp(sum(math.log(r["variants"][n]["ratio_8x8"]) for r in members) / len(members))
             worse = sum(r["variants"][n]["ratio"] > 1 for r in members)
-            cells.append(f"{ratio:.3f} / {blocks:.3f}, {worse}")
+            cell = f"{ratio:.3f} / {blocks:.3f}, {worse}"
+            if all("ratio_scaled" in r["variants"][n] for r in members):   # results since the tenth session
+                scaled = math.exp(sum(math.log(r["variants"][n]["ratio_scaled"]) for r in members) / len(members))
+                cell += f" ({scaled:.3f}, {sum(r['variants'][n]['ratio_scaled'] > 1 for r in members)})"
+            cells.append(cell)
         print(f"| {name} | {len(members)} | " + " | ".join(cells) + " |")
     print()
     for r in rows:

@@ -43,6 +43,17 @@ def relmse(est: Any, ref: Any, channel_axis: int = -1) -> Any:
     return m.mean() if isinstance(m, torch.Tensor) else float(m.mean())
 
 
+def relmse_scaled(est: np.ndarray, ref: np.ndarray, channel_axis: int = -1) -> float:
+    """relMSE of both images divided by the reference's mean: the same figure for a scene
+    and the scene with every light 1e4 times brighter. Plain relMSE's 0.01 is absolute, so
+    on a scene of mean 1e-4 it scores the few pixels above 0.1 alone (a light's edge) and
+    on one of mean 1e2 a pixel that should be black counts as much as a hundred lit ones
+    (issue 12's data span 1e-4 to 1e4). An all-black reference keeps the plain figure."""
+    m = float(np.asarray(ref, dtype=np.float64).mean())
+    m = m if m > 0 else 1.0
+    return relmse(np.asarray(est, dtype=np.float64) / m, np.asarray(ref, dtype=np.float64) / m, channel_axis)
+
+
 def relmse_trimmed(est: np.ndarray, ref: np.ndarray, discard: float = 1e-3, channel_axis: int = -1) -> float:
     """relMSE over the pixels left after dropping the ``discard`` fraction with the largest
     error, as denoising comparisons often report next to plain relMSE: a handful of

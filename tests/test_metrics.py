@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from ppmrecon.metrics import relmse, relmse_map, relmse_trimmed
+from ppmrecon.metrics import relmse, relmse_map, relmse_scaled, relmse_trimmed
 from ppmrecon.train.loss import block_log_l1, relative_log_l1, relative_log_l1_map
 
 
@@ -124,3 +124,21 @@ def test_block_loss_sees_a_smooth_bias_and_not_zero_mean_noise():
     assert float(block_log_l1(dark, target)) == pytest.approx(float(relative_log_l1(dark, target)), rel=1e-4)
     with pytest.raises(ValueError, match="smaller than one 8x8 block"):
         block_log_l1(target[..., :4, :4], target[..., :4, :4])
+
+
+def test_scaled_relmse_does_not_depend_on_the_units_and_plain_relmse_does():
+    """Issue 12's data span radiance 1e-4 to 1e4: a dark scene's plain relMSE scores only
+    its few pixels above 0.1, so the same noisy render scaled by 1e4 scores differently;
+    the scaled figure is the same, and it equals plain relMSE on an image of mean 1."""
+    rng = np.random.default_rng(0)
+    ref = rng.uniform(0.0, 2.0, (16, 16, 3))
+    ref[0, 0] = 50.0                                     # one bright pixel
+    est = ref * rng.uniform(0.5, 1.5, ref.shape)
+    plain = [relmse(est * s, ref * s) for s in (1e-4, 1.0, 1e4)]
+    scaled = [relmse_scaled(est * s, ref * s) for s in (1e-4, 1.0, 1e4)]
+    assert max(plain) > 10 * min(plain)
+    assert scaled == pytest.approx([scaled[1]] * 3, rel=1e-9)
+    m = ref.mean()
+    assert relmse_scaled(est, ref) == pytest.approx(relmse(est / m, ref / m))
+    black = np.zeros_like(ref)
+    assert relmse_scaled(est, black) == pytest.approx(relmse(est, black))
