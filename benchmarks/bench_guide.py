@@ -242,12 +242,13 @@ def summary(rows: list[dict], names: list[str]) -> list[dict]:
         b = np.array([row["variants"][name]["ratio_8x8"] for row in rows])
         net = np.array([v for row in rows if (v := row["variants"][name].get("ratio_net")) is not None])
         sc = np.array([row["variants"][name]["ratio_scaled"] for row in rows])
-        out.append({"scaled_geomean": float(np.exp(np.log(sc).mean())), "scaled_worse": int((sc > 1).sum()),"variant": name, "images": len(rows), "geomean": float(np.exp(np.log(r).mean())),
+        out.append({"variant": name, "images": len(rows), "geomean": float(np.exp(np.log(r).mean())),
                     "worst": float(r.max()), "geomean_8x8": float(np.exp(np.log(b).mean())),
                     "worst_8x8": float(b.max()), "worse_than_best": int((r > 1).sum()),
                     "at_most_half": int((r <= 0.5).sum()), "block_not_worse": int((b <= 1).sum()),
                     "net_images": len(net), "net_geomean": float(np.exp(np.log(net).mean())) if len(net) else None,
-                    "net_at_most_half": int((net <= 0.5).sum())})
+                    "net_at_most_half": int((net <= 0.5).sum()),
+                    "scaled_geomean": float(np.exp(np.log(sc).mean())), "scaled_worse": int((sc > 1).sum())})
     return out
 
 

@@ -353,10 +353,7 @@ def beside_a_light(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.
     far above its whole window, settled bright neighbours included (the issue's box
     firefly, 489 beside 0.28, is still caught). Keeping a pixel costs no consistency.
     """
-    rows, cols, inside = _window_pixels(idx, 3, *lum.shape[-2:])
-    inside[:, 4] = False                                         # the centre itself
-    b, k = idx[0][:, None], idx[1][:, None]
-    win, var = lum[b, k, rows, cols], variances[b, k, rows, cols]
+    win, var, inside = _neighbours(lum, variances, idx, 3)
     light = inside & settled_mask(win, var, cfg.min_rel_error) & (win >= cfg.edge * lum[idx][:, None])
     return light.any(1)
 
@@ -375,11 +372,7 @@ def speckled(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Tensor
     event far above every neighbour; steady bright neighbours (a light seen directly) are
     settled and are no peers. Keeping a pixel costs no consistency (module docstring).
     """
-    rows, cols, inside = _window_pixels(idx, PEER_WINDOW, *lum.shape[-2:])
-    # the window's own pixels, not the centre (a clamped border pixel would count twice)
-    inside[:, PEER_WINDOW * PEER_WINDOW // 2] = False
-    b, k = idx[0][:, None], idx[1][:, None]
-    win, var = lum[b, k, rows, cols], variances[b, k, rows, cols]
+    win, var, inside = _neighbours(lum, variances, idx, PEER_WINDOW)
     peer = inside & (win > 0) & (PEER_RATIO * win >= lum[idx][:, None]) & ~settled_mask(win, var, cfg.min_rel_error)
     return peer.sum(1) >= cfg.peers
 
@@ -439,6 +432,18 @@ def _window_pixels(idx: tuple[torch.Tensor, ...], size: int, h: int, w: int
     cols = idx[3][:, None] + offs.repeat(size)[None]
     inside = (rows >= 0) & (rows < h) & (cols >= 0) & (cols < w)
     return rows.clamp(0, h - 1), cols.clamp(0, w - 1), inside
+
+
+def _neighbours(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Tensor, ...], size: int
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The ``size`` x ``size`` windows around the pixels ``idx`` (b, k, row, col) in the same
+    estimate: values of ``lum`` and ``variances`` (B, 5, H, W), each (n, size^2), and which
+    entries are neighbours (inside the image and not the centre: a clamped border pixel
+    would count twice)."""
+    rows, cols, inside = _window_pixels(idx, size, *lum.shape[-2:])
+    inside[:, size * size // 2] = False
+    b, k = idx[0][:, None], idx[1][:, None]
+    return lum[b, k, rows, cols], variances[b, k, rows, cols], inside
 
 
 def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
