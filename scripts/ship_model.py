@@ -45,6 +45,8 @@ RESHIP_NUMBERS = (
     ("--guide-cross", "C", "ship with the guide's cross rule at C (GuideConfig.cross; 0 = off)", "guide", "cross"),
     ("--guide-y-spike", "R", "ship with ~y left out of the envelope's range where it is a lone spike R x above "
                              "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)", "guide", "y_spike"),
+    ("--guide-z-spike", "R", "ship with a pixel held at ~y where its four ~z^j are a lone spike over a settled ~y, "
+                             "each R x above it (GuideConfig.z_spike; 0 = off)", "guide", "z_spike"),
     ("--guide-anchor-window", "W", "ship with the anchor's noise correlation estimated over a W px window "
                                    "(GuideConfig.anchor_window; 0 = independent pixels)", "guide", "anchor_window"),
     ("--guide-anchor-settled", "R", "ship with the anchor acting only where its low-pass is settled, its "
@@ -292,6 +294,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             "range of each pixel's five estimates"
             + (f" (of its four ~z^j alone where ~y is a lone spike, {guide.y_spike:g}x above them and its 3 x 3 median)"
                if guide.y_spike else "")
+            + (f" (of ~y alone where the four ~z^j are a lone spike over a settled ~y, each {guide.z_spike:g}x above "
+               "it, none settled)" if guide.z_spike else "")
             + (f", widened towards the range of Eq. 6's terms over its 3 x 3 window by the share 1 / (1 + N / "
                f"{guide.terms_passes:g}) for N passes (each end by at most the range's width)"
                if guide.terms_passes else "")

@@ -172,3 +172,26 @@ def test_cli_chooser_mode_without_a_chooser_is_one_line(tmp_path, capsys):
     assert denoise_cli.main([str(buf_path), "--model", str(with_chooser), "-o", str(tmp_path / "o.exr"), "--quiet"]) == 0
     rgb, header = B.read_rgb(tmp_path / "o.exr")
     assert np.isfinite(rgb).all() and header["ppmrecon.guide"].split(" ")[2] == "chooser"
+
+
+def test_the_chooser_band_holds_a_lone_z_spike_at_y_as_the_envelope_does():
+    """With the guide's ``z_spike`` on, the band of a pixel whose four ~z^j are one photon
+    event over a settled ~y is ~y itself (lo = hi = ~y), so every candidate and the output are
+    ~y there; elsewhere the band is the five estimates' range."""
+    buf = make_buffer(16, 20, seed=8)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    est[1:, 7, 9], var[1:, 7, 9] = 3e3, 9e6
+    buf = replace(buf, estimates=est, variances=var, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
+    model = _chooser_model(seed=9)
+    model.guide = replace(model.guide, y_weight=2.0, z_spike=8.0)
+    np.testing.assert_allclose(denoise(buf, model).rgb[7, 9], est[0, 7, 9], rtol=1e-5)
+    guarded = guard_buffer(buf, model.guard)
+    guide = model.guide.in_mode("envelope")
+    images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
+    env = buffer_envelope(guarded, planes, model.guard, guide).rgb
+    _, _, lo, hi = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
+    full_lo, full_hi = band(torch.from_numpy(guarded.estimates[0]), torch.from_numpy(guarded.estimates[1:]))
+    assert torch.equal(lo[7, 9], torch.from_numpy(est[0, 7, 9])) and torch.equal(hi[7, 9], lo[7, 9])
+    keep = np.ones((16, 20), bool)
+    keep[7, 9] = False
+    assert torch.equal(hi[keep], full_hi[keep]) and torch.equal(lo[keep], full_lo[keep])

@@ -558,6 +558,47 @@ def test_envelope_keeps_a_lone_y_spike_out_of_the_output():
     np.testing.assert_allclose(on[far], off[far], rtol=1e-5, atol=1e-6)
 
 
+def test_lone_z_spikes_are_unsettled_z_over_a_settled_y():
+    """The mirror of a lone ~y spike: every ~z^j far above a settled ~y and none of them
+    settled (one photon hit point B alone caught). Not where ~y is unsettled too (a coin toss
+    between two events), nor where a ~z^j is settled (a light B sees over many passes), nor
+    where one ~z^j is within the factor, nor where ~y is 0 (no event: not settled)."""
+    from ppmrecon.model.guide import lone_z_spikes
+
+    y = torch.full((1, 3, 8, 8), 0.01)
+    z = torch.full((1, 4, 3, 8, 8), 0.012)
+    var = torch.full((1, 5, 8, 8), 1e-8)                   # sqrt(V)/mean 0.01: settled everywhere
+    for r, c in ((2, 2), (5, 5), (2, 5), (5, 2)):
+        z[..., r, c], var[:, 1:, r, c] = 1.0, 1.0          # every ~z^j one event of 1.0
+    var[:, 0, 5, 5] = 1e-4                                 # ~y one event too
+    var[:, 4, 2, 5] = 1e-3                                 # ~z^4 settled
+    z[:, 0, :, 5, 2] = 0.05                                # ~z^1 5x ~y only
+    spikes = lone_z_spikes(y, z, var, 1e-3, 8.0, 0.5)[0, 0]
+    assert bool(spikes[2, 2]) and int(spikes.sum()) == 1
+    assert not lone_z_spikes(y, z, var, 1e-3, 200.0, 0.5).any()     # 100x is below a factor of 200
+    y[..., 2, 2] = 0.0
+    assert not lone_z_spikes(y, z, var, 1e-3, 8.0, 0.5).any()
+
+
+def test_envelope_holds_a_lone_z_spike_at_y():
+    """issue 12, ``0148_bright_emitters``: one photon that hit point B alone caught lifts all
+    four ~z^j of a pixel (the guard keeps it beside a light, here: after many passes) and the
+    guide follows it; with ``z_spike`` the pixel's range is ~y's alone, so the output is ~y
+    there. Pixels beyond the anchor's reach are unchanged."""
+    buf = make_buffer(32, 32, seed=22)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    est[1:, 16, 16], var[1:, 16, 16] = 3e3, 9e6            # every ~z^j: one event (sqrt(V)/mean 1)
+    buf = replace(buf, estimates=est, variances=var, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, replace(ENVELOPE, y_weight=2.0))
+    off = denoise(buf, model, guide=replace(model.guide, z_spike=0.0)).rgb
+    on = denoise(buf, model, guide=replace(model.guide, z_spike=8.0)).rgb
+    assert float(off[16, 16].mean()) > 10 * float(est[0, 16, 16].mean())
+    np.testing.assert_allclose(on[16, 16], est[0, 16, 16], rtol=1e-6)
+    far = np.ones((32, 32), bool)
+    far[8:25, 8:25] = False
+    np.testing.assert_allclose(on[far], off[far], rtol=1e-5, atol=1e-6)
+
+
 def test_noise_correlation_and_the_variance_of_a_low_pass_of_correlated_noise():
     """White noise blurred by a Gaussian of s0 px has a Gaussian autocorrelation of width
     s0: the neighbour correlation estimated from the image alone is exp(-1 / (4 s0^2)), and
@@ -824,6 +865,23 @@ def test_cli_and_api_guide_y_found(tmp_path, capsys):
                                guide_y_found=0.0)
     assert not np.array_equal(found, plain)
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-found")
+
+
+def test_cli_and_api_guide_z_spike(tmp_path, capsys):
+    """--guide-z-spike / guide_z_spike= (the header says it; CLI and API agree; 0 turns it
+    off); 1, negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=24)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    est[1:, 12, 12], var[1:, 12, 12] = 3e3, 9e6            # one event at hit point B
+    buf = replace(buf, estimates=est, variances=var, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
+    args = _envelope_cli(tmp_path, buf)
+    held = _cli_and_api_agree(tmp_path, buf, args, "--guide-z-spike", "8", " zspike=8", guide_z_spike=8.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-z-spike", "0", "y=0", guide_z_spike=0.0)
+    assert not np.array_equal(held, plain)
+    np.testing.assert_allclose(held[12, 12], est[0, 12, 12], rtol=1e-6)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-z-spike")
+    assert denoise_main(args + ["--guide-z-spike", "1", "-o", str(tmp_path / "x.exr")]) == 2
+    assert "--guide-z-spike" in capsys.readouterr().err
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

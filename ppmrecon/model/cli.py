@@ -64,6 +64,10 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-y-spike", "R", "y_spike",
      "envelope modes: leave ~y out of a pixel's range where it is a lone spike, R x above every ~z^j of the "
      "pixel and its own 3 x 3 median; 0 = off, else R > 1 (default: the checkpoint's; the shipped model's 8)"),
+    ("--guide-z-spike", "R", "z_spike",
+     "envelope modes: hold a pixel at ~y where its four ~z^j are a lone spike over a settled ~y: each more than "
+     "R x above ~y, none settled (sqrt(V)/mean below the guard's r0) while ~y is (one photon hit point B "
+     "alone caught); 0 = off, else R > 1 (default: the checkpoint's)"),
     ("--guide-anchor-settled", "R", "anchor_settled",
      "envelope modes: the anchor acts only where its own low-pass is settled, its standard deviation below R x "
      "its level (helps next to small bright emitters, costs the glossy Cornell box's low frequencies; README); "
@@ -357,6 +361,7 @@ def _guide_header(guide: GuideConfig) -> str:
     how = (f"anchor=z{guide.anchor_source} k={guide.anchor_noise:g}" if guide.mode in ENVELOPE_MODES
            else f"beta={guide.beta:g}")
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
+    spike += f" zspike={guide.z_spike:g}" if guide.z_spike and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

@@ -193,6 +193,11 @@ class GuideConfig:
     #: has more. A photon-starved ~y reads 0 with variance 0 whatever the light there, and
     #: the share would trust its black image; 0 = off (checkpoints without it read as 0)
     y_found: float = 0.0
+    #: envelope modes: > 1 holds a pixel at ~y alone where the ~z^j are a lone spike over a
+    #: settled ~y: ~y's sqrt(V)/mean below the guard's r0 (many events), every ~z^j's at or
+    #: above it (a few events) and every ~z^j more than this factor above ~y
+    #: (:func:`lone_z_spikes`); 0 = off (checkpoints without it read as 0)
+    z_spike: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -244,6 +249,9 @@ class GuideConfig:
                 or not (self.anchor_spikes == 0 or (math.isfinite(self.anchor_spikes) and self.anchor_spikes > 1)):
             raise ValueError("guide setting 'anchor_spikes' must be 0 (off) or a finite factor > 1, "
                              f"got {self.anchor_spikes!r}")
+        if isinstance(self.z_spike, bool) or not isinstance(self.z_spike, (int, float)) \
+                or not (self.z_spike == 0 or (math.isfinite(self.z_spike) and self.z_spike > 1)):
+            raise ValueError(f"guide setting 'z_spike' must be 0 (off) or a finite factor > 1, got {self.z_spike!r}")
         if isinstance(self.y_found, bool) or not isinstance(self.y_found, (int, float)) \
                 or not math.isfinite(self.y_found) or self.y_found < 0:
             raise ValueError(f"guide setting 'y_found' must be a width in px >= 0 (0 = off), got {self.y_found!r}")
@@ -354,6 +362,45 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     if not cfg.y_spike:
         return None
     return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
+
+
+def lone_z_spikes(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, eps: torch.Tensor | float,
+                  ratio: float, r0: float) -> torch.Tensor:
+    """Where the ~z^j are a lone spike over a settled ~y, (B, 1, H, W) bool: ~y's RGB mean is
+    settled (sqrt(V) < r0 x mean, :func:`.guard.settled_mask`: many photon events), no ~z^j
+    is, and every ~z^j's RGB mean exceeds ``ratio`` x (~y's + eps). y (B, 3, H, W), z (B, 4,
+    3, H, W), ``variances`` (B, 5, H, W) the five variances of the mean, eps a scalar or
+    (B, 1, 1, 1).
+
+    The mirror of :func:`lone_y_spikes`: the four ~z^j gather at one hit point B, so one
+    photon B alone caught lifts all four together, often to the same value at every
+    radius (it lay inside the smallest). Beside a small light the guard's 3 x 3 median is
+    high and keeps it (``0148_bright_emitters`` N = 64: every ~z^j 0.97 at sqrt(V)/mean 1.0,
+    ~y 0.013 at 0.10, reference 0.016; the output was 0.42, 96% of the image's scaled
+    error). A pixel held at ~y costs no consistency: ~y alone converges to the truth.
+    """
+    from .guard import settled_mask
+
+    ylum, zlum = y.mean(1, keepdim=True), z.mean(2)
+    eps = torch.as_tensor(eps, dtype=y.dtype, device=y.device).reshape(-1, 1, 1, 1)
+    settled_y = settled_mask(ylum, variances[:, :1], r0)
+    loose_z = ~settled_mask(zlum, variances[:, 1:], r0).any(1, keepdim=True)
+    return settled_y & loose_z & (zlum.amin(1, keepdim=True) > ratio * (ylum + eps))
+
+
+def z_spike_mask(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | None, cfg: GuideConfig,
+                 guard: GuardConfig, scale: torch.Tensor | float) -> torch.Tensor | None:
+    """:func:`lone_z_spikes` with the guide's factor ``cfg.z_spike``, eps as for
+    :func:`y_spike_mask` and r0 the guard's ``min_rel_error`` (its default with the guard
+    off); None when the rule is off. ``variances`` (B, 5, H, W)."""
+    from .guard import DEFAULT_ON, RELATIVE_FLOOR
+
+    if not cfg.z_spike:
+        return None
+    if variances is None:
+        raise ValueError("the guide's z_spike needs the five variances of the mean")
+    floor, r0 = (guard.floor, guard.min_rel_error) if guard.enabled else (RELATIVE_FLOOR, DEFAULT_ON.min_rel_error)
+    return lone_z_spikes(y, z, variances, floor * scale, cfg.z_spike, r0)
 
 
 def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
@@ -565,7 +612,8 @@ def terms_range(y: torch.Tensor, z: torch.Tensor, lo: torch.Tensor, hi: torch.Te
 def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_variance: torch.Tensor,
              guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
              wider_variance: torch.Tensor | None = None, passes: float | None = None,
-             spike_variances: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
+             spike_variances: tuple[torch.Tensor, torch.Tensor] | None = None,
+             variances: torch.Tensor | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -588,7 +636,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     ``[min(lo, e), max(hi, e)]``, [lo, hi] the five estimates' range and e that held guide; with ``cfg.anchor_spikes`` R the isolated bright pixels of
     the aim t (:func:`aim_spikes`, eps as for ``y_spike``) take part in the anchor with t = e
     (their gap is not spread into their neighbours) and are set to the inverse-variance mean
-    of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W)).
+    of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W));
+    with ``cfg.z_spike`` the range of ~y alone where the ~z^j are a lone spike over a settled ~y
+    (:func:`lone_z_spikes`, ``variances`` (B, 5, H, W) the five variances of the mean).
     Why: OIDN takes a small bright light (seen directly or through a specular chain) for a
     firefly and flattens it; the anchor then spread the light's whole gap over its sigma,
     lifting a ring of neighbours to the top of their ranges (``0021_caustic_paths``: all of
@@ -605,6 +655,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
 
     spikes = y_spike_mask(y, z, cfg, guard, scale)
     lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
+    z_out = z_spike_mask(y, z, variances, cfg, guard, scale)
+    if z_out is not None:             # a zero-width range: terms_range cannot widen it either
+        lo, hi = torch.where(z_out, y, lo), torch.where(z_out, y, hi)
     if cfg.terms_passes:
         if passes is None:
             raise ValueError("envelope: the guide's terms_passes needs the render's pass count")

@@ -35,7 +35,8 @@ from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
 from .chooser import Chooser, band, candidates, features
-from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits, y_spike_mask
+from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits, y_spike_mask, \
+    z_spike_mask
 from .guide import planes as guide_planes_of
 from .kpn import KPN
 
@@ -213,7 +214,8 @@ def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImage
     buffer file, its envelope (H, W, 3) and its guide's images (:func:`buffer_guide_images`
     with ``need_y``), ``scale`` its :func:`.guard.image_scale` when the caller has it;
     ``guide`` and ``guard``: the band leaves out the guide's lone ~y spikes as the envelope
-    does (:func:`.guide.y_spike_mask`; None: the full range);
+    does (:func:`.guide.y_spike_mask`) and holds its ~z^j spikes at ~y (:func:`.guide.z_spike_mask`;
+    None: the full range);
     training (:mod:`..train.chooser`) and inference share this. Both are
     views of pixel-major memory (the buffer's own layout): the chooser's convolutions run
     channels-last on them without a copy."""
@@ -222,10 +224,16 @@ def chooser_inputs(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImage
     hwc = [torch.from_numpy(np.ascontiguousarray(a, np.float32)) for a in (envelope_rgb, buf.albedo, buf.normal)]
     oidn = [t.permute(1, 2, 0) for t in (images.guide, images.source, images.y)]
     scale = _scale(buf) if scale is None else scale
-    spikes = None
+    spikes = z_out = None
     if guide is not None and guard is not None:
-        spikes = y_spike_mask(y.permute(2, 0, 1)[None], z.permute(0, 3, 1, 2)[None], guide, guard, scale)
+        yc, zc = y.permute(2, 0, 1)[None], z.permute(0, 3, 1, 2)[None]
+        spikes = y_spike_mask(yc, zc, guide, guard, scale)
+        if guide.z_spike:
+            var = torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None]
+            z_out = z_spike_mask(yc, zc, var, guide, guard, scale)[0].permute(1, 2, 0)
     lo, hi = band(y, z, None if spikes is None else spikes[0].permute(1, 2, 0))
+    if z_out is not None:             # the envelope's range of ~y alone (:func:`.guide.envelope`)
+        lo, hi = torch.where(z_out, y, lo), torch.where(z_out, y, hi)
     cands = candidates(hwc[0], *oidn, z, lo, hi)
     feats = features(cands, y, lo, hi, torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32)), hwc[1],
                      hwc[2], scale, passes_of(buf))
@@ -263,12 +271,14 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     m = guide.anchor_source
     wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
     passes = passes_of(buf) if guide.terms_passes else None
-    if (guide.y_spike or guide.anchor_spikes) and scale is None:
+    if (guide.y_spike or guide.anchor_spikes or guide.z_spike) and scale is None:
         scale = _scale(buf)
     spike_variances = (variance_of(0), variance_of(len(buf.variances) - 1)) if guide.anchor_spikes else None
+    variances = (torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None].to(device)
+                 if guide.z_spike else None)
     with torch.no_grad():
         image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
-                         wider, passes, spike_variances)
+                         wider, passes, spike_variances, variances)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
