@@ -33,6 +33,7 @@ sys.path.insert(0, str(ROOT))
 from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
 from ppmrecon.model.chooser import CANDIDATES  # noqa: E402
+from ppmrecon.model.guard import GuardConfig  # noqa: E402
 from ppmrecon.model.guide import ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
@@ -334,6 +335,13 @@ def bench_lines(path: Path) -> list[str]:
     return lines
 
 
+def trained_guard(history: list[dict], current: GuardConfig) -> GuardConfig:
+    """The guard the network was trained with: what the first guard change of the reship
+    ``history`` changed from (settings it predates read as off), else ``current``."""
+    first = next((h["guard_from"] for h in history if "guard_from" in h), None)
+    return current if first is None else GuardConfig.from_dict(first)
+
+
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
@@ -375,7 +383,8 @@ def reship(args: argparse.Namespace) -> None:
             continue
         elif line.startswith("| firefly guard |") and ckpt.model.guard != guard_before:
             line = (f"| firefly guard | {ckpt.model.guard.to_dict()} (ppmrecon/model/guard.py; trained with "
-                    f"{guard_before.to_dict()}, the same but for the settings changed at reshipping) |")
+                    f"{trained_guard(history, guard_before).to_dict()}, the same but for the settings changed "
+                    "at reshipping) |")
         elif line.startswith("| data set |"):
             out += shipped_row(ckpt.model.guide) + chooser_row(ckpt.model, meta)
         elif line.startswith("Held-out figures from") and args.bench:

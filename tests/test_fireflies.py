@@ -581,8 +581,9 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
         C.load_checkpoint(path)
     # the shipped model is issue 12's recipe: trained with the guard and the new features; shipped
     # with the guard's confirmation by hit point B on (a reship setting, benchmarks/results/guide_spike)
-    # and the mutual confirmation of the two hit points (benchmarks/results/guide_s9_shipped)
-    assert shipped.guard == replace(DEFAULT_ON, confirm=4.0, mutual=0.75)
+    # the mutual confirmation of the two hit points (benchmarks/results/guide_s9_shipped) and the
+    # light-edge rule (benchmarks/results/guide_s11_ship)
+    assert shipped.guard == replace(DEFAULT_ON, confirm=4.0, mutual=0.75, edge=1.0)
     assert shipped.features == FeatureConfig(scale_free=True, outliers=True)
     # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py): the
     # envelope; its chooser (better on generated validation scenes, worse on the literature

@@ -119,6 +119,13 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     assert confirmed.model.guide == spiked.model.guide
     assert {"guard_from", "guard_to"} <= set(confirmed.meta["reshipped"][-1])
     assert "'confirm': 4.0" in (tmp_path / "default.md").read_text()
+    # a second guard change: the card still names the guard the network was trained with
+    _run(ship_model, monkeypatch, "--guard-edge", "1")
+    edged = C.load_checkpoint(tmp_path / "default.pt")
+    assert edged.model.guard == replace(confirmed.model.guard, edge=1.0)
+    row = next(line for line in (tmp_path / "default.md").read_text().splitlines() if line.startswith("| firefly guard"))
+    assert f"trained with {DEFAULT_ON.to_dict()}" in row and "'edge': 1.0" in row
+    _run(ship_model, monkeypatch, "--guard-edge", "0")
     with pytest.raises(SystemExit, match="--guard-confirm"):
         _run(ship_model, monkeypatch, "--guard-confirm", "1")
     with pytest.raises(SystemExit, match="--guard-confirm changes a shipped default"):
