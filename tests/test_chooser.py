@@ -132,6 +132,18 @@ def test_denoise_runs_the_chooser_on_the_envelope():
     np.testing.assert_allclose(denoise(buf, model, guide=guide).rgb, env, rtol=1e-6, atol=1e-7)
 
 
+def _bands(buf, model):
+    """The chooser's candidates and band ``(lo, hi)`` for ``buf`` as ``model`` runs it, and the
+    five guarded estimates' plain range ``(lo, hi)``."""
+    guarded = guard_buffer(buf, model.guard)
+    guide = model.guide.in_mode("envelope")
+    images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
+    env = buffer_envelope(guarded, planes, model.guard, guide).rgb
+    _, cands, lo, hi = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
+    full_lo, full_hi = band(torch.from_numpy(guarded.estimates[0]), torch.from_numpy(guarded.estimates[1:]))
+    return cands, lo, hi, full_lo, full_hi
+
+
 def test_the_chooser_band_leaves_out_a_lone_y_spike_as_the_envelope_does():
     """With the guide's ``y_spike`` on, every candidate and the output are held in the
     ~z^j's range at a lone ~y spike (issue 12, ``0036_bright_emitters``: 9-16x its best
@@ -145,12 +157,7 @@ def test_the_chooser_band_leaves_out_a_lone_y_spike_as_the_envelope_does():
     out = denoise(buf, model).rgb
     z = est[1:, 7:9, 9:11]
     assert np.all(out[7:9, 9:11] <= z.max(0) + 1e-5) and np.all(out[7:9, 9:11] >= z.min(0) - 1e-5)
-    guarded = guard_buffer(buf, model.guard)
-    guide = model.guide.in_mode("envelope")
-    images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
-    env = buffer_envelope(guarded, planes, model.guard, guide).rgb
-    _, cands, lo, hi = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
-    full_lo, full_hi = band(torch.from_numpy(guarded.estimates[0]), torch.from_numpy(guarded.estimates[1:]))
+    cands, lo, hi, full_lo, full_hi = _bands(buf, model)
     assert float(cands[:, :, 7:9, 9:11].max()) <= float(z.max()) + 1e-5
     keep = np.ones((16, 20), bool)
     keep[7:9, 9:11] = False
@@ -185,12 +192,7 @@ def test_the_chooser_band_holds_a_lone_z_spike_at_y_as_the_envelope_does():
     model = _chooser_model(seed=9)
     model.guide = replace(model.guide, y_weight=2.0, z_spike=8.0)
     np.testing.assert_allclose(denoise(buf, model).rgb[7, 9], est[0, 7, 9], rtol=1e-5)
-    guarded = guard_buffer(buf, model.guard)
-    guide = model.guide.in_mode("envelope")
-    images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
-    env = buffer_envelope(guarded, planes, model.guard, guide).rgb
-    _, _, lo, hi = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
-    full_lo, full_hi = band(torch.from_numpy(guarded.estimates[0]), torch.from_numpy(guarded.estimates[1:]))
+    _, lo, hi, full_lo, full_hi = _bands(buf, model)
     assert torch.equal(lo[7, 9], torch.from_numpy(est[0, 7, 9])) and torch.equal(hi[7, 9], lo[7, 9])
     keep = np.ones((16, 20), bool)
     keep[7, 9] = False
