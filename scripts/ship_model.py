@@ -48,6 +48,9 @@ RESHIP_NUMBERS = (
                              "every ~z^j and its 3 x 3 median (GuideConfig.y_spike; 0 = off)", "guide", "y_spike"),
     ("--guide-z-spike", "R", "ship with a pixel held at ~y where its four ~z^j are a lone spike over a settled ~y, "
                              "each R x above it (GuideConfig.z_spike; 0 = off)", "guide", "z_spike"),
+    ("--guide-anchor-free", "R", "ship with the anchored value of a pixel whose five estimates are all unsettled at R "
+                                 "held in the range widened to its neighbourhood's (GuideConfig.anchor_free; 0 = off)",
+     "guide", "anchor_free"),
     ("--guide-anchor-window", "W", "ship with the anchor's noise correlation estimated over a W px window "
                                    "(GuideConfig.anchor_window; 0 = independent pixels)", "guide", "anchor_window"),
     ("--guide-anchor-settled", "R", "ship with the anchor acting only where its low-pass is settled, its "
@@ -311,6 +314,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f", isolated bright pixels of the anchor's aim ({guide.anchor_spikes:g}x above its 3 x 3 median) "
                "left out of its low-pass and set to the inverse-variance mean of ~y and ~z^4"
                if guide.anchor_spikes else "")
+            + (f", held where all five estimates are unsettled at {guide.anchor_free:g} (a photon speckle field) "
+               "in its range widened to the 5 x 5 medians of its ends" if guide.anchor_free else "")
             + f"{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 

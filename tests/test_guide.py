@@ -599,6 +599,60 @@ def test_envelope_holds_a_lone_z_spike_at_y():
     np.testing.assert_allclose(on[far], off[far], rtol=1e-5, atol=1e-6)
 
 
+def test_speckle_field_is_where_every_estimate_is_unsettled():
+    """All five unsettled (one event, or ~y without one) is a speckle pixel; one settled
+    estimate, ~y or any ~z^j, is not, nor a pixel whose widest gather ~z^4 stayed empty (a
+    dark pixel); r = 0 is off."""
+    from ppmrecon.model.guide import speckle_field
+
+    y = torch.full((1, 3, 4, 4), 1.0)
+    z = torch.full((1, 4, 3, 4, 4), 1.0)
+    var = torch.full((1, 5, 4, 4), 1.0)                     # sqrt(V)/mean 1: one event everywhere
+    y[..., 0, 0], z[..., 0, 0], var[..., 0, 0] = 0.0, 0.0, 0.0   # no photon at all: dark
+    y[..., 3, 3], var[:, 0, 3, 3] = 0.0, 0.0                 # ~y caught nothing, ~z^4 one event: a speckle
+    var[:, 0, 1, 1] = 0.01                                   # ~y settled
+    var[:, 3, 2, 2] = 0.01                                   # ~z^3 settled
+    field = speckle_field(y, z, var, 0.5)[0, 0]
+    assert bool(field[3, 3]) and int(field.sum()) == 13
+    assert not bool(field[0, 0]) and not bool(field[1, 1]) and not bool(field[2, 2])
+    assert speckle_field(y, z, var, 0.0) is None
+
+
+def test_envelope_anchor_free_leaves_the_range_only_in_a_speckle_field():
+    """A field of one-event speckles (the glossy floor of the literature cornell-box): the
+    widest gather ~z^4 catches a photon of very uneven value at every pixel, the others
+    rarely. The guide's smooth level clamped into each pixel's range loses much of its
+    energy (most pixels' range ends below it), and the anchor cannot bring it back through
+    the clamp; with ``anchor_free`` the range there reaches the 5 x 5 medians of its ends,
+    so the field keeps more of its mean. Where the estimates are settled the output is
+    the clamped one, bit for bit, and a settled light beside the field does not widen it."""
+    from ppmrecon.model.guide import envelope
+
+    gen = torch.Generator().manual_seed(3)
+    h = w = 32
+    z4 = 4.0 * torch.rand(1, 1, h, w, generator=gen) ** 3                   # mean 1, mostly small
+    y = torch.zeros(1, 3, h, w)
+    z = torch.zeros(1, 4, 3, h, w)
+    z[:, 3] = z4.expand(1, 3, h, w)
+    var = torch.zeros(1, 5, h, w)
+    var[:, 4] = z4[:, 0] ** 2                                                # sqrt(V)/mean 1: one event
+    y[..., :, 24:], z[..., :, 24:], var[..., :, 24:] = 1.0, 1.0, 1e-4       # a settled strip on the right
+    z[..., 0, 20], var[:, 1:, 0, 20] = 1e4, 1.0                              # a settled light in the field
+    guide = torch.cat([torch.full((1, 3, h, w), 1.0), torch.full((1, 1, h, w), 0.5)], 1)
+    plain = replace(ENVELOPE, anchor_source=4)
+    clamped = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, plain, variances=var)
+    free = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, anchor_free=0.5), variances=var)
+    field = (slice(8, 32), slice(0, 16))
+    kept, lost = float(free[..., field[0], field[1]].mean()), float(clamped[..., field[0], field[1]].mean())
+    assert lost < 0.7 and kept > lost + 0.1                                  # the field's mean is 0.95
+    assert torch.equal(free[..., :, 24:], clamped[..., :, 24:]) and bool((free >= 0).all())
+    beside = free[..., :3, 18:23].clone()
+    beside[..., 0, 2] = 0.0                                                  # the light itself
+    assert float(beside.max()) <= 4.0                                        # its neighbours: the field's range
+    with pytest.raises(ValueError, match="anchor_free"):
+        envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, anchor_free=0.5))
+
+
 def test_noise_correlation_and_the_variance_of_a_low_pass_of_correlated_noise():
     """White noise blurred by a Gaussian of s0 px has a Gaussian autocorrelation of width
     s0: the neighbour correlation estimated from the image alone is exp(-1 / (4 s0^2)), and
@@ -882,6 +936,23 @@ def test_cli_and_api_guide_z_spike(tmp_path, capsys):
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-z-spike")
     assert denoise_main(args + ["--guide-z-spike", "1", "-o", str(tmp_path / "x.exr")]) == 2
     assert "--guide-z-spike" in capsys.readouterr().err
+
+
+def test_cli_and_api_guide_anchor_free(tmp_path, capsys):
+    """--guide-anchor-free / guide_anchor_free= (the header says it; CLI and API agree; 0 turns
+    it off); negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=25)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    rng = np.random.default_rng(25)
+    speck = rng.random((24, 12)) < 0.1
+    est[:, :, :12] = (speck * 10.0)[None, :, :, None]        # a speckle field on the left
+    var[:, :, :12] = (speck * 100.0)[None]
+    buf = replace(buf, estimates=est, variances=var)
+    args = _envelope_cli(tmp_path, buf)
+    free = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-free", "0.5", " free=0.5", guide_anchor_free=0.5)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-free", "0", "y=0", guide_anchor_free=0.0)
+    assert not np.array_equal(free, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-free")
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

@@ -321,7 +321,7 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
         mask &= lum > g * (local_floor(lum) + eps)                   # median >= floor: a cheap bound
     idx = mask.nonzero(as_tuple=True)
     if idx[0].numel():
-        med = _window_median(lum.unsqueeze(2), idx).squeeze(1)
+        med = window_median(lum.unsqueeze(2), idx).squeeze(1)
         mask[idx] = lum[idx] > g.view(b)[idx[0]] * (med + eps.view(b)[idx[0]])
     if cfg.confirm:
         mask[:, 0] &= ~confirmed(lum, variances, cfg)
@@ -446,11 +446,11 @@ def _neighbours(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Ten
     return lum[b, k, rows, cols], variances[b, k, rows, cols], inside
 
 
-def _window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...]) -> torch.Tensor:
-    """3 x 3 medians (replicate padding) of x (B, 5, C, H, W) at the pixels ``idx`` (b, k,
-    row, col index tensors), (n, C); only those windows are gathered."""
-    r9, c9, _ = _window_pixels(idx, 3, *x.shape[-2:])
-    win = x[idx[0][:, None], idx[1][:, None], :, r9, c9]               # (n, 9, C)
+def window_median(x: torch.Tensor, idx: tuple[torch.Tensor, ...], size: int = 3) -> torch.Tensor:
+    """``size`` x ``size`` medians (replicate padding; size odd) of x (B, K, C, H, W) at the
+    pixels ``idx`` (b, k, row, col index tensors), (n, C); only those windows are gathered."""
+    rows, cols, _ = _window_pixels(idx, size, *x.shape[-2:])
+    win = x[idx[0][:, None], idx[1][:, None], :, rows, cols]           # (n, size^2, C)
     return win.median(dim=1).values
 
 
@@ -458,7 +458,7 @@ def _replace_outliers(est: torch.Tensor, var: torch.Tensor, mask: torch.Tensor) 
     """Write the 3 x 3 medians into ``est`` (B, 5, 3, H, W) and ``var`` (B, 5, H, W) at
     ``mask``, in place (all medians are taken before anything is written)."""
     idx = mask.nonzero(as_tuple=True)
-    med, vmed = _window_median(est, idx), _window_median(var.unsqueeze(2), idx)
+    med, vmed = window_median(est, idx), window_median(var.unsqueeze(2), idx)
     est[idx[0], idx[1], :, idx[2], idx[3]] = med
     var[idx] = vmed.squeeze(1)
 

@@ -198,6 +198,12 @@ class GuideConfig:
     #: above it (a few events) and every ~z^j more than this factor above ~y
     #: (:func:`lone_z_spikes`); 0 = off (checkpoints without it read as 0)
     z_spike: float = 0.0
+    #: envelope modes: > 0 holds the anchored value of a pixel whose five estimates are all
+    #: unsettled at this r (sqrt(V)/mean >= r, or 0) while ~z^4 caught a photon (a photon
+    #: speckle field, whose per-pixel range says little about its mean) in its range widened
+    #: to the 5 x 5 medians of its ends (:func:`speckle_field`, :func:`speckle_range`);
+    #: 0 = off (checkpoints without it read as 0)
+    anchor_free: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -252,6 +258,10 @@ class GuideConfig:
         if isinstance(self.z_spike, bool) or not isinstance(self.z_spike, (int, float)) \
                 or not (self.z_spike == 0 or (math.isfinite(self.z_spike) and self.z_spike > 1)):
             raise ValueError(f"guide setting 'z_spike' must be 0 (off) or a finite factor > 1, got {self.z_spike!r}")
+        if isinstance(self.anchor_free, bool) or not isinstance(self.anchor_free, (int, float)) \
+                or not math.isfinite(self.anchor_free) or self.anchor_free < 0:
+            raise ValueError("guide setting 'anchor_free' must be a ratio >= 0 (0 = off), "
+                             f"got {self.anchor_free!r}")
         if isinstance(self.y_found, bool) or not isinstance(self.y_found, (int, float)) \
                 or not math.isfinite(self.y_found) or self.y_found < 0:
             raise ValueError(f"guide setting 'y_found' must be a width in px >= 0 (0 = off), got {self.y_found!r}")
@@ -638,7 +648,17 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     (their gap is not spread into their neighbours) and are set to the inverse-variance mean
     of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W));
     with ``cfg.z_spike`` the range of ~y alone where the ~z^j are a lone spike over a settled ~y
-    (:func:`lone_z_spikes`, ``variances`` (B, 5, H, W) the five variances of the mean).
+    (:func:`lone_z_spikes`, ``variances`` (B, 5, H, W) the five variances of the mean);
+    with ``cfg.anchor_free`` the anchored value of a pixel whose five estimates are all
+    unsettled (:func:`speckle_field`) held in its range widened to the 5 x 5 medians of its
+    ends (:func:`speckle_range`), so that a speckle field keeps its mean, while a firefly in
+    all five estimates is not lifted further (``water_caustic`` N = 256 with the anchored
+    value unclamped: 0.63 -> 0.69 of its best input from one such pixel) and a light beside
+    the pixel does not widen it (``0164_bright_emitters`` N = 4 with the Gaussian mean of
+    the ends: 0.20 -> 51).
+    Consistent there too: the anchored value converges (the held guide does, and the
+    anchor's correction, a fixed blur of ``t - e``, goes to 0), and the widened range
+    contains [lo, hi], whose ends converge to the truth.
     Why: OIDN takes a small bright light (seen directly or through a specular chain) for a
     firefly and flattens it; the anchor then spread the light's whole gap over its sigma,
     lifting a ring of neighbours to the top of their ranges (``0021_caustic_paths``: all of
@@ -681,8 +701,59 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
                                    cfg.anchor_window, cfg.anchor_settled)
         if spikes is not None:
             held = torch.where(spikes, spike_estimate(y, z[:, -1], *spike_variances), held)
+        free = speckle_field(y, z, variances, cfg.anchor_free)
+        if free is not None:
+            lo, hi = speckle_range(lo, hi, free)
         held = torch.minimum(torch.maximum(held, lo), hi)
     return held
+
+
+def speckle_field(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | None, r: float) -> torch.Tensor | None:
+    """Where every one of a pixel's five estimates is unsettled at ``r`` (sqrt(V)/mean >= r,
+    or a mean of 0: :func:`.guard.settled_mask`) while the widest, ~z^4, caught some photon,
+    (B, 1, H, W) bool; None for r = 0 (off). y (B, 3, H, W), z (B, 4, 3, H, W),
+    ``variances`` (B, 5, H, W). A pixel whose widest gather stayed empty for N passes is
+    dark, not a speckle (``0178_indirect``: a black region beside a bright one).
+
+    Such a pixel lies in a field of photon speckles (the literature ``cornell-box``'s glossy
+    floor at N = 64: most pixels' five estimates are 0 or one event), where the range of its
+    own estimates says little about its mean: clamping a smooth value into it took energy
+    from every pixel whose estimates all missed and gave little back, so that image's dark
+    8x8 blocks came out 1.5-4x too dark and its 8x8-block relMSE was 2.1x that of ~z^4.
+    :func:`envelope` widens such a pixel's range to its neighbourhood's (:func:`speckle_range`).
+    """
+    from .guard import settled_mask
+
+    if not r:
+        return None
+    if variances is None:
+        raise ValueError("the guide's anchor_free needs the five variances of the mean")
+    settled = settled_mask(torch.cat([y.mean(1, keepdim=True), z.mean(2)], 1), variances, r).any(1, keepdim=True)
+    caught = z[:, -1].amax(1, keepdim=True) > 0
+    return caught & ~settled
+
+
+#: :func:`speckle_range`'s window (pixels, odd): about the anchor's blur (sigma 1.5 px).
+SPECKLE_WINDOW = 5
+
+
+def speckle_range(lo: torch.Tensor, hi: torch.Tensor, free: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The range ``(lo, hi)`` (B, 3, H, W) widened at the speckle pixels ``free`` (B, 1, H, W)
+    to the :data:`SPECKLE_WINDOW` medians of its ends, ``[min(lo, med lo), max(hi, med hi)]``
+    per channel; elsewhere unchanged. A median, not a mean: the few bright pixels of a window
+    (a light, a firefly beside a dark pixel: ``0028_bright_emitters`` N = 64 with a Gaussian
+    mean of the speckle pixels' ends, 0.14 -> 0.91 of its best input) do not set it. Only the
+    speckle pixels' windows are gathered."""
+    from .guard import window_median
+
+    b, _, r, c = free.nonzero(as_tuple=True)
+    if not b.numel():
+        return lo, hi
+    idx = (b, torch.zeros_like(b), r, c)
+    lo, hi = lo.clone(), hi.clone()
+    lo[b, :, r, c] = torch.minimum(lo[b, :, r, c], window_median(lo[:, None], idx, SPECKLE_WINDOW))
+    hi[b, :, r, c] = torch.maximum(hi[b, :, r, c], window_median(hi[:, None], idx, SPECKLE_WINDOW))
+    return lo, hi
 
 
 #: Bound of the learned log-temperature: the prior is at most e^4 ~ 55x sharper or flatter.
