@@ -589,6 +589,8 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
     # envelope; its chooser (better on generated validation scenes, worse on the literature
     # scenes: benchmarks/results/chooser) travels with it, opt-in
     assert shipped.guide.enabled and shipped.guide.mode == "envelope" and shipped.chooser is not None
+    # ... with a speckle field's range widened for the anchor (benchmarks/results/guide_s11_final)
+    assert shipped.guide.anchor_free == 0.5
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):

@@ -728,9 +728,10 @@ def speckle_field(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | No
         return None
     if variances is None:
         raise ValueError("the guide's anchor_free needs the five variances of the mean")
-    settled = settled_mask(torch.cat([y.mean(1, keepdim=True), z.mean(2)], 1), variances, r).any(1, keepdim=True)
-    caught = z[:, -1].amax(1, keepdim=True) > 0
-    return caught & ~settled
+    free = z[:, -1].amax(1, keepdim=True) > 0
+    free &= ~settled_mask(y.mean(1, keepdim=True), variances[:, :1], r)
+    free &= ~settled_mask(z.mean(2), variances[:, 1:], r).any(1, keepdim=True)
+    return free
 
 
 #: :func:`speckle_range`'s window (pixels, odd): about the anchor's blur (sigma 1.5 px).
