@@ -560,7 +560,7 @@ def test_envelope_keeps_a_lone_y_spike_out_of_the_output():
 
 def test_lone_z_spikes_are_unsettled_z_over_a_settled_y():
     """The mirror of a lone ~y spike: every ~z^j far above a settled ~y and none of them
-    settled (one photon hit point B alone caught). Not where ~y is unsettled too (a coin toss
+    settled (light hit point B's eye path alone saw once). Not where ~y is unsettled too (a coin toss
     between two events), nor where a ~z^j is settled (a light B sees over many passes), nor
     where one ~z^j is within the factor, nor where ~y is 0 (no event: not settled)."""
     from ppmrecon.model.guide import lone_z_spikes
@@ -581,7 +581,7 @@ def test_lone_z_spikes_are_unsettled_z_over_a_settled_y():
 
 
 def test_envelope_holds_a_lone_z_spike_at_y():
-    """issue 12, ``0148_bright_emitters``: one photon that hit point B alone caught lifts all
+    """issue 12, ``0148_bright_emitters``: light that hit point B's eye path alone saw lifts all
     four ~z^j of a pixel (the guard keeps it beside a light, here: after many passes) and the
     guide follows it; with ``z_spike`` the pixel's range is ~y's alone, so the output is ~y
     there. Pixels beyond the anchor's reach are unchanged."""

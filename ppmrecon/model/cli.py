@@ -66,8 +66,8 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "pixel and its own 3 x 3 median; 0 = off, else R > 1 (default: the checkpoint's; the shipped model's 8)"),
     ("--guide-z-spike", "R", "z_spike",
      "envelope modes: hold a pixel at ~y where its four ~z^j are a lone spike over a settled ~y: each more than "
-     "R x above ~y, none settled (sqrt(V)/mean below the guard's r0) while ~y is (one photon hit point B "
-     "alone caught); 0 = off, else R > 1 (default: the checkpoint's)"),
+     "R x above ~y, none settled (sqrt(V)/mean below the guard's r0) while ~y is (light hit point B's eye path alone "
+     "saw once); 0 = off, else R > 1 (default: the checkpoint's)"),
     ("--guide-anchor-free", "R", "anchor_free",
      "envelope modes: where ~y and every ~z^j of a pixel are unsettled at R (sqrt(V)/mean >= R, or 0: a photon "
      "speckle field) while ~z^4 caught a photon, hold the anchored value in its range widened to the 5 x 5 "

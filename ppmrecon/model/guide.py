@@ -382,9 +382,11 @@ def lone_z_spikes(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, eps
     3, H, W), ``variances`` (B, 5, H, W) the five variances of the mean, eps a scalar or
     (B, 1, 1, 1).
 
-    The mirror of :func:`lone_y_spikes`: the four ~z^j gather at one hit point B, so one
-    photon B alone caught lifts all four together, often to the same value at every
-    radius (it lay inside the smallest). Beside a small light the guard's 3 x 3 median is
+    The mirror of :func:`lone_y_spikes`: the four ~z^j share hit point B, so light that B's
+    eye path alone saw in one pass (a small emitter through glass or in a mirror) lifts all
+    four together, to the same value at every radius (emission, not a photon density:
+    every pixel where the rule fires in the study renders and in ``0148`` has its four ~z^j
+    within 1%). Beside a small light the guard's 3 x 3 median is
     high and keeps it (``0148_bright_emitters`` N = 64: every ~z^j 0.97 at sqrt(V)/mean 1.0,
     ~y 0.013 at 0.10, reference 0.016; the output was 0.42, 96% of the image's scaled
     error). A pixel held at ~y costs no consistency: ~y alone converges to the truth.
