@@ -298,7 +298,7 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
         "rerun `ppmrecon-train generate`)"]
 
 
-@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu"])
+@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout"])
 def test_data_configs_load(name):
     DataConfig.load(CONFIGS / f"{name}.json")
 
@@ -313,6 +313,18 @@ def test_v2_configs_are_the_issue_12_sets():
     for name in ("cpu", "tiny"):
         old = asdict(DataConfig.load(CONFIGS / f"{name}.json"))
         assert json.loads(json.dumps({k: old[k] for k in LEGACY_CONFIG})) == LEGACY_CONFIG
+
+
+def test_holdout_config_shares_no_scene_seed_with_a_training_set():
+    """The hold-out set's scenes (seeds first_seed .. first_seed + scenes - 1) are none of
+    the shipped training sets', and it has every family of the issue-12 sets."""
+    hold = DataConfig.load(CONFIGS / "holdout.json")
+    held = set(range(hold.first_seed, hold.first_seed + hold.scenes))
+    for name in ("cpu", "tiny", "v2", "v2_cpu"):
+        cfg = DataConfig.load(CONFIGS / f"{name}.json")
+        assert not held & set(range(cfg.first_seed, cfg.first_seed + cfg.scenes)), name
+    assert hold.families == DataConfig.load(CONFIGS / "v2.json").families
+    assert hold.scenes >= 2 * len(hold.families)
 
 
 def test_data_config_rejects_unknown_family_and_a_thin_reference():
