@@ -419,7 +419,7 @@ def main() -> None:
     if args.data:
         print(f"validation: {len(val_rows)} images", flush=True)
     report = {"models": {k: str(v) for k, v in models.items()}, "scenes": scene_rows, "validation": val_rows,
-              "split": args.split,
+              "split": args.split, "data": [str(d) for d in args.data],
               "summary_scenes": summary(scene_rows, names) if scene_rows else [],
               "summary_validation": summary(val_rows, names) if val_rows else [],
               "minutes": (time.perf_counter() - t0) / 60}

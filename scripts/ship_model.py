@@ -70,6 +70,9 @@ RESHIP_NUMBERS = (
      "guide", "anchor_spikes"),
     ("--guide-y-found", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
                              "of S px, where ~y is not sparser than ~z^4 (GuideConfig.y_found; 0 = off)", "guide", "y_found"),
+    ("--guide-y-empty", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
+                             "of S px, where ~y did not read 0 while ~z^4 rests on more than one event "
+                             "(GuideConfig.y_empty; 0 = off)", "guide", "y_empty"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -116,8 +119,9 @@ def main() -> None:
     ap.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
                     help="ship with the denoiser guide in this mode (default: as trained); the choice "
                          "should come from held-out figures: give them with --bench")
-    ap.add_argument("--bench", type=Path, default=None,
-                    help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card")
+    ap.add_argument("--bench", type=Path, action="append", default=None,
+                    help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card "
+                         "(repeatable: one table each, e.g. the training data and a hold-out set)")
     ap.add_argument("--chooser", type=Path, default=None, metavar="CKPT",
                     help="attach the chooser of this `ppmrecon-train chooser` result (its chooser.pt) and "
                          "ship in guide mode 'chooser'")
@@ -232,8 +236,8 @@ def main() -> None:
         lines += ["", "The validation set changed during training (the run was resumed on a data set that had "
                   "grown): from epoch " + ", from epoch ".join(f"{e}: {len(k) or 'unrecorded'} images" for e, k in sets)
                   + "; `best.pt` compares only epochs validated on the same images."]
-    if args.bench:
-        lines += ["", *bench_lines(args.bench)]
+    for path in args.bench or ():
+        lines += ["", *bench_lines(path)]
     lines += ["", f"Limits: trained on SPPM inputs only, on generated scenes at {cfg['resolution'][0]}x"
               f"{cfg['resolution'][1]}; the literature scenes of ../shared were never seen. Held-out numbers: "
               "benchmarks/results/guide/guide.md, quality.md, curves.md, guard.md, anchor.md."]
@@ -261,7 +265,7 @@ def command_flags(args: argparse.Namespace) -> str:
                       if getattr(args, _dest(flag)) is not None)
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "") + numbers
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
-            + (f" --bench {args.bench}" if args.bench else ""))
+            + "".join(f" --bench {path}" for path in args.bench or ()))
 
 
 def chooser_row(model, meta: dict) -> list[str]:
@@ -291,7 +295,10 @@ def shipped_row(guide: GuideConfig) -> list[str]:
     if not (guide.enabled and guide.mode in ENVELOPE_MODES):
         return []
     mixed = (f"OIDN's images of ~z^{guide.source} and ~y mixed by the inverse of their inputs' local variances, "
-             f"~y's times {guide.y_weight:g}" if guide.y_weight else f"OIDN's image of ~z^{guide.source}")
+             f"~y's times {guide.y_weight:g}"
+             + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "
+                f"~z^{guide.source} rests on more than one photon event)" if guide.y_empty else "")
+             if guide.y_weight else f"OIDN's image of ~z^{guide.source}")
     chooser = ("; then the chooser (row below) mixes that envelope per pixel with other images held in the "
                "same range (`--guide-mode envelope`: the envelope alone)" if guide.mode == "chooser" else "")
     return [f"| shipped reconstruction | guide mode `{guide.mode}` ({guide.to_dict()}): {mixed}, held inside the "
@@ -331,6 +338,8 @@ def bench_lines(path: Path) -> list[str]:
              "| images | variant | relMSE / best | worst | worse than best | <= 0.5x | 8x8 / best | 8x8 <= best |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     data_label = {"val": "validation", "train": "training split", "all": "data set, all splits"}[bench.get("split", "val")]
+    if bench.get("data"):                       # results before the key: one unnamed data set
+        data_label = f"{', '.join(f'`{d}`' for d in bench['data'])} {data_label.replace('data set, ', '')}"
     for label, key in (("study scenes", "summary_scenes"), (data_label, "summary_validation")):
         for row in bench.get(key, []):
             if row["variant"].split(" ")[0] in bench.get("models", {}) or row["variant"] == "oidn(z4)":
@@ -392,8 +401,9 @@ def reship(args: argparse.Namespace) -> None:
                     "at reshipping) |")
         elif line.startswith("| data set |"):
             out += shipped_row(ckpt.model.guide) + chooser_row(ckpt.model, meta)
-        elif line.startswith("Held-out figures from") and args.bench:
-            out += bench_lines(args.bench)
+        elif line.startswith("Held-out figures from") and args.bench and not skipping:
+            for i, path in enumerate(args.bench):
+                out += ([""] if i else []) + bench_lines(path)
             skipping = True
             continue
         elif skipping and line.startswith("Limits:"):

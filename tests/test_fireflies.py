@@ -591,6 +591,9 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
     assert shipped.guide.enabled and shipped.guide.mode == "envelope" and shipped.chooser is not None
     # ... with a speckle field's range widened for the anchor (benchmarks/results/guide_s11_final)
     assert shipped.guide.anchor_free == 0.5
+    # ... and ~y's share in the guide lowered where ~y caught nothing beside a lit ~z^4
+    # (benchmarks/results/guide_s12_yempty and its hold-out set, guide_s12_yempty_holdout)
+    assert shipped.guide.y_empty == 3.0 and shipped.guide.y_found == 0.0
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):

@@ -283,6 +283,38 @@ def test_y_found_keeps_a_photon_starved_y_out_of_the_guide():
         with pytest.raises(ValueError, match="y_found"):
             GuideConfig(y_found=bad)
 
+def test_y_empty_keeps_only_a_y_that_caught_nothing_out_of_the_guide():
+    """y_empty S: ~y's share is scaled by the local share of pixels where ~y did not read 0
+    while the source rests on more than one event. A ~y that caught nothing next to a well-lit
+    source loses its share (its V = 0 reads as certainty, the plain share is 1); a ~y of less
+    than one event keeps it (y_found takes that one out too), and so do a ~y beside an equally
+    sparse source and an emitter seen directly."""
+    h, w = 24, 60
+    est = np.ones((5, h, w, 3), np.float32)
+    var = np.full((5, h, w), 0.01, np.float32)          # 100 events everywhere ...
+    est[0, :, :12], var[0, :, :12] = 0.0, 0.0           # ... but ~y caught nothing on the left
+    var[0, :, 24:36] = 4.0                              # ~y of a quarter event: sparse, not empty
+    est[0, :, 36:48], var[0, :, 36:48] = 0.0, 0.0       # nothing, where the source is as sparse
+    var[4, :, 36:48] = 4.0
+    var[0, :, 48:] = 0.0                                # an emitter: lit, variance 0
+    plain = y_share(var, 4, 2.0)
+    empty = y_share(var, 4, 2.0, estimates=est, empty=2.0)
+    found = y_share(var, 4, 2.0, found=2.0, estimates=est)
+    assert float(plain[0, :, :4].min()) == pytest.approx(1.0)       # V_y = 0 reads as certainty
+    assert float(empty[0, :, :4].abs().max()) == 0.0                # caught nothing: OIDN(~z^4) alone
+    for cols in (slice(28, 32), slice(40, 44), slice(54, 60)):      # a quarter event, equally sparse, emitter
+        torch.testing.assert_close(empty[0, :, cols], plain[0, :, cols])
+    assert float(found[0, :, 29:31].abs().max()) < 1e-3             # y_found: the quarter event is starved
+    assert bool((empty <= plain + 1e-7).all())
+    torch.testing.assert_close(y_share(var, 4, 2.0, empty=2.0), plain)   # no estimates: off
+    both = y_share(var, 4, 2.0, found=2.0, estimates=est, empty=2.0)
+    torch.testing.assert_close(both, found * empty / plain.clamp(min=1e-12), atol=1e-6, rtol=1e-5)
+    assert GuideConfig.from_dict({}).y_empty == 0 and GuideConfig(y_empty=3).y_empty == 3
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="y_empty"):
+            GuideConfig(y_empty=bad)
+
+
 def test_a_spike_only_hit_point_b_saw_is_kept_out_of_the_guide():
     from ppmrecon.model.guide import despike
 
@@ -919,6 +951,22 @@ def test_cli_and_api_guide_y_found(tmp_path, capsys):
                                guide_y_found=0.0)
     assert not np.array_equal(found, plain)
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-found")
+
+
+def test_cli_and_api_guide_y_empty(tmp_path, capsys):
+    """--guide-y-empty / guide_y_empty= (the header says it; CLI and API agree; 0 turns it
+    off); negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=23)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    est[0, :, :12], var[0, :, :12] = 0.0, 0.0                # ~y caught no photon on the left
+    buf = replace(buf, estimates=est, variances=var)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-y-weight", "2", "--guide-y-found", "0"]
+    empty = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-empty", "4", " empty=4",
+                               guide_y_weight=2.0, guide_y_found=0.0, guide_y_empty=4.0)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-empty", "0", "y=2", guide_y_weight=2.0,
+                               guide_y_found=0.0, guide_y_empty=0.0)
+    assert not np.array_equal(empty, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-empty")
 
 
 def test_cli_and_api_guide_z_spike(tmp_path, capsys):

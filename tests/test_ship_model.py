@@ -84,6 +84,30 @@ def test_reship_changes_the_guide_keeps_the_weights_and_rewrites_the_card(ship_m
     assert (tmp_path / "default.md").read_text().count("Re-shipped by") == 1
 
 
+def test_reship_with_two_bench_results_names_each_data_set(ship_model, tmp_path, monkeypatch):
+    """--bench twice (the training data and a hold-out set): one table each, in that order,
+    the data rows named by the folders the result records; y_empty goes into the shipped row."""
+    row = {"variant": "shipped", "images": 5, "geomean": 0.5, "worst": 1.2, "worse_than_best": 1,
+           "at_most_half": 2, "geomean_8x8": 0.9, "block_not_worse": 3}
+    benches = []
+    for name, images in (("train", 5), ("hold", 7)):
+        path = tmp_path / f"{name}.json"
+        path.write_text(json.dumps({"models": {"shipped": "x"}, "summary_scenes": [], "split": "all",
+                                    "data": [f"data/{name}"], "summary_validation": [{**row, "images": images}]}))
+        benches += ["--bench", str(path)]
+    _run(ship_model, monkeypatch, "--guide-y-weight", "2", "--guide-y-empty", "3", *benches)
+    card = (tmp_path / "default.md").read_text()
+    assert C.load_checkpoint(tmp_path / "default.pt").model.guide.y_empty == 3.0
+    assert card.index("| `data/train` all splits (5) | shipped | 0.500 |") \
+        < card.index("| `data/hold` all splits (7) | shipped | 0.500 |")
+    assert card.count("Held-out figures from") == 2 and f"--bench {tmp_path / 'hold.json'}" in card
+    assert "where ~y did not read 0 while ~z^" in card
+    # reshipped again with one result: the two tables are replaced by one
+    _run(ship_model, monkeypatch, "--guide-y-empty", "3", "--bench", str(tmp_path / "hold.json"))
+    card = (tmp_path / "default.md").read_text()
+    assert card.count("Held-out figures from") == 1 and "data/train" not in card
+
+
 def test_reship_needs_a_setting_and_a_valid_one(ship_model, monkeypatch):
     with pytest.raises(SystemExit, match="guide setting to change"):
         _run(ship_model, monkeypatch)

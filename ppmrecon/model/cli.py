@@ -93,6 +93,10 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y is not sparser "
      "than ~z^4 (under one photon event, mean^2 / variance < 1, where ~z^4 has more): a photon-starved ~y "
      "reads black with variance 0; 0 = off (default: the checkpoint's)"),
+    ("--guide-y-empty", "S", "y_empty",
+     "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
+     "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
+     "0 = off (default: the checkpoint's; the shipped model's 3)"),
 )
 
 
@@ -372,6 +376,7 @@ def _guide_header(guide: GuideConfig) -> str:
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
+    found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
     return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 

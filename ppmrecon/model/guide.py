@@ -193,6 +193,12 @@ class GuideConfig:
     #: has more. A photon-starved ~y reads 0 with variance 0 whatever the light there, and
     #: the share would trust its black image; 0 = off (checkpoints without it read as 0)
     y_found: float = 0.0
+    #: > 0 scales ~y's share in the guide (:func:`y_share`) by the fraction of pixels, over a
+    #: Gaussian of this many px, where ~y did not read 0 while the source estimate rests on
+    #: more than one photon event: a ~y that caught nothing reads 0 with variance 0, which the
+    #: share takes for certainty. The narrower sibling of ``y_found`` (which also counts a ~y
+    #: of less than one event as starved); 0 = off (checkpoints without it read as 0)
+    y_empty: float = 0.0
     #: envelope modes: > 1 holds a pixel at ~y alone where the ~z^j are a lone spike over a
     #: settled ~y: ~y's sqrt(V)/mean below the guard's r0 (many events), every ~z^j's at or
     #: above it (a few events) and every ~z^j more than this factor above ~y
@@ -265,6 +271,9 @@ class GuideConfig:
         if isinstance(self.y_found, bool) or not isinstance(self.y_found, (int, float)) \
                 or not math.isfinite(self.y_found) or self.y_found < 0:
             raise ValueError(f"guide setting 'y_found' must be a width in px >= 0 (0 = off), got {self.y_found!r}")
+        if isinstance(self.y_empty, bool) or not isinstance(self.y_empty, (int, float)) \
+                or not math.isfinite(self.y_empty) or self.y_empty < 0:
+            raise ValueError(f"guide setting 'y_empty' must be a width in px >= 0 (0 = off), got {self.y_empty!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -416,7 +425,7 @@ def z_spike_mask(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | Non
 
 
 def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
-            estimates: np.ndarray | None = None) -> torch.Tensor:
+            estimates: np.ndarray | None = None, empty: float = 0.0) -> torch.Tensor:
     """The share of OIDN's image of ~y in the guide, per pixel, (1, H, W):
 
         w = f Vbar_s / (Vbar_y + f Vbar_s),   Vbar = G_sigma * V
@@ -438,6 +447,15 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     is as sparse (next to a small light, where ~y's image keeps the source's fireflies out
     of the guide) the share stays. The factor is 1 once ~y has seen its photons, so it
     leaves renders of many passes alone.
+
+    With ``empty`` = S > 0 (and ``estimates``), w is multiplied by G_S * [not (~y = 0 and
+    k_s > 1)]: the local share of pixels where ~y read something or the source is as sparse.
+    Only a ~y that caught nothing counts as starved, not one of less than one event, whose
+    OIDN image still helps at few passes (``benchmarks/results/guide_s12_yempty``: with
+    ``found`` = 3 the control scene ``0110_glossy_interreflection`` at N = 4 went from 0.22 to
+    0.40 of its best input, with ``empty`` = 3 to 0.25, while the thin light leaks of
+    ``0039_texture_leaks``, worse than their best input at N = 4..64 with neither, improve
+    with both).
     """
     from .guard import gaussian_lowpass, settled_mask
 
@@ -445,11 +463,12 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
     v = gaussian_lowpass(raw[None], Y_WEIGHT_SIGMA)[0]
     vs = weight * v[1:2]
     w = vs / (v[0:1] + vs).clamp(min=torch.finfo(v.dtype).tiny)     # 0 / tiny = 0 where nothing is noisy
-    if found and estimates is not None:
+    if (found or empty) and estimates is not None:
         means = torch.from_numpy(np.ascontiguousarray(estimates[[0, source]], np.float32)).mean(-1)
         events = settled_mask(means, raw, 1.0)                 # mean^2 / V > 1: more than one event
-        sparser = ~events[0] & events[1]
-        w = w * gaussian_lowpass((~sparser).to(raw.dtype)[None, None], found)[0]
+        for width, starved in ((found, ~events[0]), (empty, means[0] <= 0)):
+            if width:
+                w = w * gaussian_lowpass((~(starved & events[1])).to(raw.dtype)[None, None], width)[0]
     return w
 
 
@@ -487,7 +506,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
             apart = torch.maximum(a / b, b / a) > cfg.cross
             g = torch.where(apart, (g.clamp(min=0) * gy.clamp(min=0)).sqrt(), g)
         if mix_y:
-            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found, estimates))
+            g = torch.lerp(g, gy, y_share(variances, cfg.source, cfg.y_weight, cfg.y_found, estimates, cfg.y_empty))
     elif need_y:
         gy = g                                          # the source is ~y itself
     return GuideImages(g, g_source, gy)
