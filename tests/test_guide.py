@@ -937,36 +937,21 @@ def test_cli_and_api_guide_anchor_spikes(tmp_path, capsys):
     assert "--guide-anchor-spikes" in capsys.readouterr().err
 
 
-def test_cli_and_api_guide_y_found(tmp_path, capsys):
-    """--guide-y-found / guide_y_found= (the header says it; CLI and API agree; 0 turns it
-    off); negative or not a number: one clear line, exit 2, no output."""
+@pytest.mark.parametrize("name, header", [("y_found", "found"), ("y_empty", "empty")])
+def test_cli_and_api_guide_y_found_and_y_empty(tmp_path, capsys, name, header):
+    """--guide-y-found / guide_y_found= and --guide-y-empty / guide_y_empty= (the header says
+    it; CLI and API agree; 0 turns it off); negative or not a number: one clear line, exit 2,
+    no output."""
+    flag, keyword = "--guide-" + name.replace("_", "-"), "guide_" + name
     buf = make_buffer(24, 24, seed=23)
     est, var = buf.estimates.copy(), buf.variances.copy()
     est[0, :, :12], var[0, :, :12] = 0.0, 0.0                # ~y caught no photon on the left
     buf = replace(buf, estimates=est, variances=var)
     args = _envelope_cli(tmp_path, buf) + ["--guide-y-weight", "2"]
-    found = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-found", "4", " found=4",
-                               guide_y_weight=2.0, guide_y_found=4.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-found", "0", "y=2", guide_y_weight=2.0,
-                               guide_y_found=0.0)
-    assert not np.array_equal(found, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-found")
-
-
-def test_cli_and_api_guide_y_empty(tmp_path, capsys):
-    """--guide-y-empty / guide_y_empty= (the header says it; CLI and API agree; 0 turns it
-    off); negative or not a number: one clear line, exit 2, no output."""
-    buf = make_buffer(24, 24, seed=23)
-    est, var = buf.estimates.copy(), buf.variances.copy()
-    est[0, :, :12], var[0, :, :12] = 0.0, 0.0                # ~y caught no photon on the left
-    buf = replace(buf, estimates=est, variances=var)
-    args = _envelope_cli(tmp_path, buf) + ["--guide-y-weight", "2", "--guide-y-found", "0"]
-    empty = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-empty", "4", " empty=4",
-                               guide_y_weight=2.0, guide_y_found=0.0, guide_y_empty=4.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-y-empty", "0", "y=2", guide_y_weight=2.0,
-                               guide_y_found=0.0, guide_y_empty=0.0)
-    assert not np.array_equal(empty, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-y-empty")
+    on = _cli_and_api_agree(tmp_path, buf, args, flag, "4", f" {header}=4", guide_y_weight=2.0, **{keyword: 4.0})
+    plain = _cli_and_api_agree(tmp_path, buf, args, flag, "0", "y=2", guide_y_weight=2.0, **{keyword: 0.0})
+    assert not np.array_equal(on, plain)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
 
 
 def test_cli_and_api_guide_z_spike(tmp_path, capsys):
