@@ -128,6 +128,13 @@ def main() -> None:
     for flag, metavar, text, _, key in RESHIP_NUMBERS:
         ap.add_argument(flag, type=int if key in INTEGER_KEYS else float, default=None, metavar=metavar, help=text)
     args = ap.parse_args()
+    for path in args.bench or ():              # checked before anything is written
+        try:
+            bench = json.loads(path.read_text())
+        except (OSError, ValueError) as exc:
+            sys.exit(f"ship_model: --bench {path}: not a readable bench_guide.py result ({exc.__class__.__name__})")
+        if not isinstance(bench, dict) or "summary_validation" not in bench:
+            sys.exit(f"ship_model: --bench {path}: not a bench_guide.py result (no summary rows)")
     if args.run is None:
         reship(args)
         return

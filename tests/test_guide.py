@@ -283,6 +283,7 @@ def test_y_found_keeps_a_photon_starved_y_out_of_the_guide():
         with pytest.raises(ValueError, match="y_found"):
             GuideConfig(y_found=bad)
 
+
 def test_y_empty_keeps_only_a_y_that_caught_nothing_out_of_the_guide():
     """y_empty S: ~y's share is scaled by the local share of pixels where ~y did not read 0
     while the source rests on more than one event. A ~y that caught nothing next to a well-lit

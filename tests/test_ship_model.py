@@ -108,6 +108,15 @@ def test_reship_with_two_bench_results_names_each_data_set(ship_model, tmp_path,
     assert card.count("Held-out figures from") == 1 and "data/train" not in card
 
 
+def test_reship_refuses_a_bench_file_that_is_no_result_before_writing(ship_model, tmp_path, monkeypatch):
+    before = (tmp_path / "default.md").read_text()
+    (tmp_path / "other.json").write_text(json.dumps({"rows": []}))
+    for path, why in ((tmp_path / "missing.json", "not a readable"), (tmp_path / "other.json", "no summary rows")):
+        with pytest.raises(SystemExit, match=f"--bench {path}: .*{why}"):
+            _run(ship_model, monkeypatch, "--guide-y-empty", "3", "--bench", str(path))
+    assert (tmp_path / "default.md").read_text() == before
+
+
 def test_reship_needs_a_setting_and_a_valid_one(ship_model, monkeypatch):
     with pytest.raises(SystemExit, match="guide setting to change"):
         _run(ship_model, monkeypatch)
