@@ -686,6 +686,27 @@ def test_envelope_anchor_free_leaves_the_range_only_in_a_speckle_field():
         envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, anchor_free=0.5))
 
 
+def test_redistribute_gives_back_the_clamps_loss_within_each_pixels_range():
+    """A smooth level clamped into a speckle field's ranges loses energy; ``redistribute``
+    gives part of it back to the pixels with room, never outside their own ``[lo, hi]``,
+    and changes nothing where the clamp took nothing."""
+    from ppmrecon.model.guide import redistribute
+
+    gen = torch.Generator().manual_seed(5)
+    lo = torch.zeros(1, 3, 32, 32)
+    hi = (4.0 * torch.rand(1, 1, 32, 32, generator=gen) ** 3).expand(1, 3, 32, 32).contiguous()
+    anchored = torch.ones(1, 3, 32, 32)
+    held = torch.minimum(torch.maximum(anchored, lo), hi)
+    out = redistribute(anchored, held, lo, hi, 1.5)
+    assert bool((out >= lo).all()) and bool((out <= hi).all())
+    lost, kept = float((anchored - held).mean()), float((out - held).mean())
+    assert lost > 0.2 and kept > 0.2 * lost                  # the room is capped at the local level
+    inside = torch.full_like(anchored, 0.5)
+    assert torch.equal(redistribute(inside, inside, lo, hi + 1.0, 1.5), inside)
+    with pytest.raises(ValueError, match="redistribute"):
+        GuideConfig(redistribute=-1.0)
+
+
 def test_noise_correlation_and_the_variance_of_a_low_pass_of_correlated_noise():
     """White noise blurred by a Gaussian of s0 px has a Gaussian autocorrelation of width
     s0: the neighbour correlation estimated from the image alone is exp(-1 / (4 s0^2)), and
