@@ -745,10 +745,11 @@ def redistribute(anchored: torch.Tensor, held: torch.Tensor, lo: torch.Tensor, h
     around within their own ranges, (B, 3, H, W) per channel (``held`` the clamped image):
 
         D = G_sigma * (anchored - held)                      the clamp's local loss (signed)
-        out = held + (hi - held) min(1, D / G_sigma * (hi - held))     where D > 0
-        out = held - (held - lo) min(1, -D / G_sigma * (held - lo))    where D < 0
+        U = min(hi - held, L),  W = min(held - lo, L),  L = G_sigma * held
+        out = held + U min(1, D / G_sigma * U)               where D > 0
+        out = held - W min(1, -D / G_sigma * W)              where D < 0
 
-    with a pixel's room capped at the local level G_sigma * held (uncapped, a firefly's
+    a pixel's room capped at the local level L (uncapped, a firefly's
     room drew the loss into it: ``0086_glossy_interreflection`` N = 4, 0.28 -> 0.88 of its
     best input). Each pixel takes a share of the loss in proportion to its room, so the sum over a
     neighbourhood moves by about D's, as far as the room allows. Why: in a field of photon
