@@ -142,3 +142,20 @@ def test_scaled_relmse_does_not_depend_on_the_units_and_plain_relmse_does():
     assert relmse_scaled(est, ref) == pytest.approx(relmse(est / m, ref / m))
     black = np.zeros_like(ref)
     assert relmse_scaled(est, black) == pytest.approx(relmse(est, black))
+
+
+def test_deciding_pixels_counts_the_fewest_pixels_whose_excess_makes_an_image_worse():
+    """0 where ours is no worse; 1 where one pixel's excess outweighs everything else; the
+    count grows with a spread-out (systematic) excess."""
+    from ppmrecon.metrics import deciding_pixels
+
+    excess = np.full((16, 16), -0.01)
+    assert deciding_pixels(excess) == 0                    # better everywhere
+    excess[3, 4] = 1.0                                      # one pixel: 1.0 against 2.55 gained... not enough
+    assert deciding_pixels(excess) == 0
+    excess[3, 4] = 10.0                                     # ... now it decides alone
+    assert deciding_pixels(excess) == 1
+    spread = np.full((16, 16), 0.01)                        # worse everywhere, by a little
+    assert deciding_pixels(spread) == 256
+    spread[0, 0] = 0.5                                      # a large pixel first, then the rest
+    assert deciding_pixels(spread) == 1 + 255

@@ -298,7 +298,7 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
         "rerun `ppmrecon-train generate`)"]
 
 
-@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout"])
+@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024"])
 def test_data_configs_load(name):
     DataConfig.load(CONFIGS / f"{name}.json")
 
@@ -325,6 +325,20 @@ def test_holdout_config_shares_no_scene_seed_with_a_training_set():
         assert not held & set(range(cfg.first_seed, cfg.first_seed + cfg.scenes)), name
     assert hold.families == DataConfig.load(CONFIGS / "v2.json").families
     assert hold.scenes >= 2 * len(hold.families)
+
+
+def test_n1024_holdout_is_new_scenes_with_references_far_beyond_its_longest_input():
+    """The N = 1024 hold-out: scene seeds no other shipped set uses (the first hold-out grown
+    to 32 scenes included), every family, inputs up to 1024 passes, all validation, and each
+    reference at least 16x the photons of the longest input."""
+    deep = DataConfig.load(CONFIGS / "holdout_n1024.json")
+    seeds = set(range(deep.first_seed, deep.first_seed + deep.scenes))
+    for name in ("cpu", "tiny", "v2", "v2_cpu", "holdout"):
+        cfg = DataConfig.load(CONFIGS / f"{name}.json")
+        assert not seeds & set(range(cfg.first_seed, cfg.first_seed + max(cfg.scenes, 32))), name
+    assert deep.families == DataConfig.load(CONFIGS / "v2.json").families and deep.scenes >= len(deep.families)
+    assert max(deep.input_passes) == 1024 and deep.validation_every == 1 and deep.references == 2
+    assert deep.reference_passes * deep.reference_photons >= 16 * 1024 * deep.photons
 
 
 def test_data_config_rejects_unknown_family_and_a_thin_reference():
