@@ -60,7 +60,8 @@ def build_parser() -> ArgumentParser:
     g.add_argument("--config", type=config_file("data"), default=builtin_configs("data").get("cpu"),
                    metavar="NAME|FILE.json",
                    help=f"data-set budgets: a JSON file or a shipped set ({', '.join(builtin_configs('data'))}; "
-                        f"default: cpu; the issue-12 sets are v2 and v2_cpu, holdout the scenes no rule was tuned on, and holdout_n1024 such scenes up to N = 1024)")
+                        "default: cpu; the issue-12 sets are v2 and v2_cpu, holdout the scenes no rule was tuned "
+                        "on, and holdout_n1024 such scenes up to N = 1024)")
     g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
     g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2; not used with --ray)")
     g.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
