@@ -148,7 +148,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
             guide_anchor_spikes: float | None = None, guide_y_found: float | None = None,
             guide_z_spike: float | None = None, guide_anchor_free: float | None = None,
-            guide_y_empty: float | None = None, tile: int | None = None,
+            guide_y_empty: float | None = None, guide_redistribute: float | None = None,
+            tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -186,7 +187,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     neighbourhood's (0 = off; None: the model's), as
     ``--guide-anchor-free``; ``guide_y_empty``: ~y's share in the guide scaled by the local share
     of pixels where ~y did not read 0 while ~z^4 rests on more than one event (Gaussian width
-    in px, 0 = off; None: the model's), as ``--guide-y-empty``; ``tile``,
+    in px, 0 = off; None: the model's), as ``--guide-y-empty``; ``guide_redistribute``: what
+    the final clamp took given back to the pixels around within their ranges (Gaussian width
+    in px, 0 = off; None: the model's), as ``--guide-redistribute``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -215,7 +218,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "anchor_settled": guide_anchor_settled, "anchor_select": guide_anchor_select,
                                          "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,
                                          "y_found": guide_y_found, "z_spike": guide_z_spike,
-                                         "anchor_free": guide_anchor_free, "y_empty": guide_y_empty},
+                                         "anchor_free": guide_anchor_free, "y_empty": guide_y_empty,
+                                         "redistribute": guide_redistribute},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

@@ -70,6 +70,9 @@ RESHIP_NUMBERS = (
      "guide", "anchor_spikes"),
     ("--guide-y-found", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
                              "of S px, where ~y is not sparser than ~z^4 (GuideConfig.y_found; 0 = off)", "guide", "y_found"),
+    ("--guide-redistribute", "S", "ship with what the envelope's final clamp took given back to the pixels around, "
+                                  "over a Gaussian of S px, within their ranges (GuideConfig.redistribute; 0 = off)",
+     "guide", "redistribute"),
     ("--guide-y-empty", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
                              "of S px, where ~y did not read 0 while ~z^4 rests on more than one event "
                              "(GuideConfig.y_empty; 0 = off)", "guide", "y_empty"),
@@ -330,6 +333,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                if guide.anchor_spikes else "")
             + (f", held where all five estimates are unsettled at {guide.anchor_free:g} (a photon speckle field) "
                "in its range widened to the 5 x 5 medians of its ends" if guide.anchor_free else "")
+            + (f", what the final clamp took given back to the pixels around over a Gaussian of "
+               f"{guide.redistribute:g} px, each within its own range" if guide.redistribute else "")
             + f"{chooser}; the Eq. 6 network is "
             "not run (`ppmrecon-denoise --guide-mode weights` runs it, with this guide as the prior of Eq. 6) |"]
 

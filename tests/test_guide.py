@@ -1010,6 +1010,27 @@ def test_cli_and_api_guide_anchor_free(tmp_path, capsys):
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-free")
 
 
+def test_cli_and_api_guide_redistribute(tmp_path, capsys):
+    """--guide-redistribute / guide_redistribute= (the header says it; CLI and API agree; 0
+    turns it off; on a speckle field it gives back what the clamp took, so the image is no
+    darker); negative or not a number: one clear line, exit 2, no output."""
+    buf = make_buffer(24, 24, seed=26)
+    est, var = buf.estimates.copy(), buf.variances.copy()
+    rng = np.random.default_rng(26)
+    speck = rng.random((5, 24, 24)) < 0.3
+    est[:] = (speck * 10.0)[..., None]                       # a speckle field: many pixels' estimates all 0
+    var[:] = speck * 100.0
+    buf = replace(buf, estimates=est, variances=var)
+    args = _envelope_cli(tmp_path, buf)
+    given = _cli_and_api_agree(tmp_path, buf, args, "--guide-redistribute", "1.5", " redis=1.5",
+                               guide_redistribute=1.5)
+    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-redistribute", "0", "y=0", guide_redistribute=0.0)
+    assert not np.array_equal(given, plain)
+    assert given.mean() >= plain.mean()
+    assert (given <= est.max(0) + 1e-6).all() and (given >= 0).all()
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-redistribute")
+
+
 def test_training_refuses_the_envelope_mode(tmp_path):
     """The envelope runs no network: a training config asking for it is one clear error
     (before any data is read)."""

@@ -72,6 +72,10 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "envelope modes: where ~y and every ~z^j of a pixel are unsettled at R (sqrt(V)/mean >= R, or 0: a photon "
      "speckle field) while ~z^4 caught a photon, hold the anchored value in its range widened to the 5 x 5 "
      "medians of its ends instead of the pixel's own; 0 = off (default: the checkpoint's)"),
+    ("--guide-redistribute", "S", "redistribute",
+     "envelope modes: give what the final clamp into each pixel's range took back to the pixels around, over a "
+     "Gaussian of S px, each within its own range (lower low-frequency error, a little higher relMSE; README); "
+     "0 = off (default: the checkpoint's; the shipped model's 0)"),
     ("--guide-anchor-settled", "R", "anchor_settled",
      "envelope modes: the anchor acts only where its own low-pass is settled, its standard deviation below R x "
      "its level (helps next to small bright emitters, costs the glossy Cornell box's low frequencies; README); "
@@ -371,6 +375,7 @@ def _guide_header(guide: GuideConfig) -> str:
     spike = f" spike={guide.y_spike:g}" if guide.y_spike and guide.mode in ENVELOPE_MODES else ""
     spike += f" zspike={guide.z_spike:g}" if guide.z_spike and guide.mode in ENVELOPE_MODES else ""
     spike += f" free={guide.anchor_free:g}" if guide.anchor_free and guide.mode in ENVELOPE_MODES else ""
+    spike += f" redis={guide.redistribute:g}" if guide.redistribute and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
