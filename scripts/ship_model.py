@@ -85,6 +85,9 @@ RESHIP_NUMBERS = (
                             "(GuardConfig.mutual; 0 = off)", "guard", "mutual"),
     ("--guard-edge", "E", "ship with the guard's light-edge rule: no outlier where a settled pixel of its 3 x 3 "
                           "window is at least E x its value (GuardConfig.edge; 0 = off)", "guard", "edge"),
+    ("--guard-events", "K", "ship with the guard's confirmation by events: no outlier where ~y and a ~z^j of the "
+                            "pixel both saw the light, lie within the confirm factor of each other and rest on K "
+                            "passes' events together (GuardConfig.events; 0 = off)", "guard", "events"),
 )
 
 #: Settings of :data:`RESHIP_NUMBERS` that are indices, not numbers: parsed as integers.

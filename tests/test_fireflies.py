@@ -493,6 +493,44 @@ def test_a_light_both_hit_points_see_over_several_passes_is_no_outlier_with_mutu
             GuardConfig(enabled=True, mutual=bad)
 
 
+def test_a_rare_light_one_chain_saw_once_and_the_other_thrice_is_no_outlier_with_events():
+    """``GuardConfig.events`` (issue 12, the literature ``box`` at N = 1024): a glint both hit
+    points see in a few of their passes, ~y from one event (sqrt(V)/X ~ 1) and every ~z^j
+    from three (0.58). ``mutual`` asks more than one event of each chain and let the ~z^j
+    go (the output was 0.17 where the reference is 53.7). With ``events`` K the two chains'
+    events together, X^2 / V each, decide: 1 + 3 >= 4 keeps the pixel. A photon both gathers
+    shared in one pass (1 + 1), one chain alone, and a ~y far from its ~z^j are still caught."""
+    h = w = 24
+    n = 1024.0
+    est = np.full((5, h, w, 3), 0.16, np.float32)
+    var = np.full((5, h, w), (0.02 * 0.16) ** 2, np.float32)
+    def events(k: float, value: float) -> tuple[float, float]:
+        return value, value * value * (1.0 / k - 1.0 / n)            # k equal events in n passes
+    glint, shared, z_only, far = (6, 6), (6, 17), (17, 6), (17, 17)
+    est[0][glint], var[0][glint] = events(1, 30.8)
+    est[1:, glint[0], glint[1]], var[1:, glint[0], glint[1]] = events(3, 91.8)
+    est[:, shared[0], shared[1]], var[:, shared[0], shared[1]] = events(1, 500.0)
+    est[1:, z_only[0], z_only[1]], var[1:, z_only[0], z_only[1]] = events(3, 91.8)
+    est[0][far], var[0][far] = events(1, 300.0)                    # ~y 1 event, 10x its ~z^j
+    est[1:, far[0], far[1]], var[1:, far[0], far[1]] = events(3, 3000.0)
+    t = lambda a: torch.from_numpy(a)[None]                 # noqa: E731
+    args = (t(est).permute(0, 1, 4, 2, 3), t(var), torch.tensor([n]))
+    shipped_before = replace(DEFAULT_ON, confirm=4.0, mutual=0.75, edge=1.0)
+    before = find_outliers(*args, shipped_before)[0]
+    after = find_outliers(*args, replace(shipped_before, events=4.0))[0]
+    assert bool(before[1:, glint[0], glint[1]].all())                 # mutual let the ~z^j go
+    assert not bool(after[:, glint[0], glint[1]].any())               # 1 + 3 events: kept
+    for r, c in (shared, z_only, far):
+        assert bool(after[:, r, c].any()) and torch.equal(after[:, r, c], before[:, r, c])
+    assert bool((after <= before).all())                              # it only switches replacements off
+    late = find_outliers(args[0], args[1], torch.tensor([1e12]), replace(shipped_before, events=4.0))
+    assert not bool(late.any())                                       # eventually the identity
+    assert GuardConfig.from_dict({"enabled": True}).events == 0
+    for bad in (-1.0, 1.0, 2.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="events"):
+            GuardConfig(enabled=True, events=bad)
+
+
 def test_the_unsettled_edge_of_a_small_light_is_no_outlier_with_edge():
     """``GuardConfig.edge`` (issue 12, ``0108_bright_emitters`` N = 64): a pixel on the edge
     of a small emitter sees it in some passes only, so all five estimates are unsettled and

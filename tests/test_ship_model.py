@@ -159,6 +159,11 @@ def test_reship_turns_the_cross_rule_off_and_labels_the_bench_split(ship_model, 
     row = next(line for line in (tmp_path / "default.md").read_text().splitlines() if line.startswith("| firefly guard"))
     assert f"trained with {DEFAULT_ON.to_dict()}" in row and "'edge': 1.0" in row
     _run(ship_model, monkeypatch, "--guard-edge", "0")
+    _run(ship_model, monkeypatch, "--guard-events", "4")
+    assert C.load_checkpoint(tmp_path / "default.pt").model.guard == replace(confirmed.model.guard, events=4.0)
+    with pytest.raises(SystemExit, match="--guard-events"):
+        _run(ship_model, monkeypatch, "--guard-events", "2")
+    _run(ship_model, monkeypatch, "--guard-events", "0")
     with pytest.raises(SystemExit, match="--guard-confirm"):
         _run(ship_model, monkeypatch, "--guard-confirm", "1")
     with pytest.raises(SystemExit, match="--guard-confirm changes a shipped default"):
