@@ -621,7 +621,8 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
     # with the guard's confirmation by hit point B on (a reship setting, benchmarks/results/guide_spike)
     # the mutual confirmation of the two hit points (benchmarks/results/guide_s9_shipped) and the
     # light-edge rule (benchmarks/results/guide_s11_ship)
-    assert shipped.guard == replace(DEFAULT_ON, confirm=4.0, mutual=0.75, edge=1.0)
+    # ... and the confirmation by events (benchmarks/results/guide_s15_events*)
+    assert shipped.guard == replace(DEFAULT_ON, confirm=4.0, mutual=0.75, edge=1.0, events=4.0)
     assert shipped.features == FeatureConfig(scale_free=True, outliers=True)
     # ... and ships with the guide in the mode the held-out figures picked (bench_guide.py): the
     # envelope; its chooser (better on generated validation scenes, worse on the literature

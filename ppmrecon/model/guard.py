@@ -29,7 +29,12 @@ What the guard does
    within 4x of it (:func:`speckled`): one speckle of a sparse field, not a lone firefly.
    With ``edge`` e > 0 a pixel is also kept where a settled pixel of its 3 x 3 window in
    the same estimate is at least e x its value (:func:`beside_a_light`): the edge of a
-   small light, which some passes see and some do not.
+   small light, which some passes see and some do not. With ``mutual`` r1 (both hit points
+   below sqrt(V)/Xbar = r1) or ``events`` K (both saw it, and their events Xbar^2 / V add up
+   to K) no estimate of a pixel is an outlier where ~y and a ~z^j within ``confirm`` of each
+   other confirm it (:func:`mutually_confirmed`, :func:`events_confirmed`): a rare light
+   the two independent eye paths both see, where a photon both gathers shared in one pass
+   leaves one event in each.
 2. **Low-frequency anchor**: Eq. 6 takes its low frequencies from ~y. Every term is
    ``~y_i + (~z^j_c - ~z^j_i)``; the bracket is a high-pass of ~z^j over the K x K window,
    so below the window's frequency (K = 5 in the tiny preset) the output is a weighted
