@@ -342,7 +342,10 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
     if cfg.mutual:
         mask &= ~mutually_confirmed(lum, variances, cfg)[:, None]
     if cfg.events:
-        mask &= ~events_confirmed(lum, variances, cfg)[:, None]
+        b, r, c = mask.any(1).nonzero(as_tuple=True)            # only where some estimate is a candidate
+        if b.numel():
+            kept = events_confirmed(lum[b, :, r, c][..., None, None], variances[b, :, r, c][..., None, None], cfg)
+            mask[b, :, r, c] &= ~kept.view(-1, 1)
     if cfg.peers:
         idx = mask.nonzero(as_tuple=True)
         if idx[0].numel():
