@@ -18,28 +18,20 @@ import sys
 from collections import defaultdict
 from pathlib import Path
 
-import numpy as np
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_guide as BG  # noqa: E402
 
 
-def geomean(values: list[float]) -> float:
-    return float(np.exp(np.mean(np.log(values))))
-
-
 def by_passes(rows: list[dict], names: list[str]) -> list[str]:
-    """One Markdown row per N: per variant, relMSE / 8x8 geomeans over the best input, worse count."""
+    """One Markdown row per N: per variant, relMSE / 8x8 geomeans over the best input and the
+    count of images worse than it (:func:`bench_guide.summary` of that N's images)."""
     groups: dict[int, list[dict]] = defaultdict(list)
     for row in rows:
         groups[row["passes"]].append(row)
     lines = ["| N | images | " + " | ".join(names) + " |", "|---:|---:|" + "---|" * len(names)]
     for n in sorted(groups):
-        cells = []
-        for name in names:
-            v = [r["variants"][name] for r in groups[n]]
-            cells.append(f"{geomean([x['ratio'] for x in v]):.3f} / {geomean([x['ratio_8x8'] for x in v]):.3f}, "
-                         f"{sum(x['ratio'] > 1 for x in v)} worse")
+        cells = [f"{s['geomean']:.3f} / {s['geomean_8x8']:.3f}, {s['worse_than_best']} worse"
+                 for s in BG.summary(groups[n], names)]
         lines.append(f"| {n} | {len(groups[n])} | " + " | ".join(cells) + " |")
     return lines
 

@@ -426,11 +426,17 @@ def mutually_confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardCon
     caught; two independent eye paths each seeing the same light over several passes is
     light. Not replacing a pixel costs no consistency.
     """
-    c = cfg.confirm or 4.0
     y, z = lum[:, :1], lum[:, 1:]
     a = settled_mask(y, variances[:, :1], cfg.mutual)
-    b = settled_mask(z, variances[:, 1:], cfg.mutual) & (c * z >= y) & (c * y >= z)
+    b = settled_mask(z, variances[:, 1:], cfg.mutual) & _agree(y, z, cfg)
     return a[:, 0] & b.any(1)
+
+
+def _agree(y: torch.Tensor, z: torch.Tensor, cfg: GuardConfig) -> torch.Tensor:
+    """Where ~y and each ~z^j lie within the confirmation factor (``cfg.confirm``, 4 when
+    that is off) of each other, both ways; broadcasts y (.., 1, ..) against z (.., 4, ..)."""
+    c = cfg.confirm or 4.0
+    return (c * z >= y) & (c * y >= z)
 
 
 def event_count(mean: torch.Tensor, variance: torch.Tensor) -> torch.Tensor:
@@ -457,10 +463,9 @@ def events_confirmed(lum: torch.Tensor, variances: torch.Tensor, cfg: GuardConfi
     input's. A photon both gathers shared in one pass leaves one event in each (k_y + k_z
     ~ 2) and is still caught. Not replacing a pixel costs no consistency.
     """
-    c = cfg.confirm or 4.0
     y, z = lum[:, :1], lum[:, 1:]
     k = event_count(lum, variances)
-    both = (y > 0) & (z > 0) & (c * z >= y) & (c * y >= z) & (k[:, :1] + k[:, 1:] >= cfg.events)
+    both = (y > 0) & (z > 0) & _agree(y, z, cfg) & (k[:, :1] + k[:, 1:] >= cfg.events)
     return both.any(1)
 
 
