@@ -1040,3 +1040,58 @@ def test_training_refuses_the_envelope_mode(tmp_path):
     with pytest.raises(UsageError, match="envelope"):
         train(tmp_path / "no_data", tmp_path / "run", TrainConfig(guide={"enabled": True, "mode": "envelope"}),
               quiet=True)
+
+
+def test_far_guide_takes_the_estimates_centre_only_far_outside_a_settled_range():
+    """Where the guide lies more than F x outside a pixel's range (a small light OIDN
+    flattened, or a light it spread over a dark pixel) and some estimate is settled, the
+    pixel takes (~y + mean_j ~z^j) / 2; within F x, or where every estimate is unsettled
+    (a speckle field), the held guide is kept; F = 0 is off."""
+    from ppmrecon.model.guide import far_guide
+
+    y = torch.full((1, 3, 4, 4), 2.0)
+    z = torch.full((1, 4, 3, 4, 4), 4.0)
+    var = torch.full((1, 5, 4, 4), 1e-4)                       # settled everywhere
+    lo, hi = torch.full_like(y, 2.0), torch.full_like(y, 4.0)
+    guide = torch.full_like(y, 3.0)
+    guide[..., 0, 0] = 0.1                                     # 20x below lo
+    guide[..., 0, 1] = 1.0                                     # 2x below: within F = 4
+    guide[..., 1, 1] = 100.0                                   # 25x above hi
+    guide[..., 2, 2] = 0.1                                     # far below, but a speckle pixel
+    var[..., 2, 2] = 100.0
+    held = torch.minimum(torch.maximum(guide, lo), hi)
+    out = far_guide(held, guide, lo, hi, y, z, var, 4.0, 0.5)
+    assert torch.allclose(out[..., 0, 0], torch.tensor(3.0)) and torch.allclose(out[..., 1, 1], torch.tensor(3.0))
+    changed = (out != held).any(1)[0]
+    assert int(changed.sum()) == 2
+    assert torch.equal(far_guide(held, guide, lo, hi, y, z, var, 0.0, 0.5), held)
+    with pytest.raises(ValueError, match="variances"):
+        far_guide(held, guide, lo, hi, y, z, None, 4.0, 0.5)
+
+
+def test_envelope_far_guide_stays_within_the_five_estimates():
+    """issue 12: a guide that flattened a light of one pixel seen by every ~z^j, and by ~y far
+    less (OIDN takes it for a firefly): the plain envelope holds it at ~y, the range's nearer end
+    (the anchor's blurred gap lifts it a little);
+    with ``far`` the pixel lies at the estimates' centre, inside their range (consistent),
+    and the pixels beyond the anchor's reach are unchanged bit for bit. A bad ``far`` is
+    refused with the setting's name."""
+    from ppmrecon.model.guide import envelope
+
+    h = w = 24
+    y = torch.full((1, 3, h, w), 0.1)
+    z = torch.full((1, 4, 3, h, w), 0.1)
+    var = torch.full((1, 5, h, w), 1e-6)                       # settled everywhere
+    y[..., 12, 12], z[..., 12, 12] = 1.0, 5e3                  # ~z^j see the light, ~y a little of it
+    guide = torch.cat([torch.full((1, 3, h, w), 0.1), torch.full((1, 1, h, w), 0.5)], 1)
+    plain = replace(ENVELOPE, anchor_source=4)
+    off = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, plain, variances=var)
+    on = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, far=4.0), variances=var)
+    assert float(off[..., 12, 12].max()) < 500.0              # ~y, lifted a little by the anchor's blur
+    assert bool((on[..., 12, 12] >= 1.0).all()) and bool((on[..., 12, 12] <= 5e3).all())
+    assert float(on[..., 12, 12].mean()) > 2e3
+    away = torch.ones(h, w, dtype=torch.bool)
+    away[4:21, 4:21] = False
+    assert torch.equal(on[..., away], off[..., away])
+    with pytest.raises(ValueError, match="'far'"):
+        GuideConfig(far=0.5)
