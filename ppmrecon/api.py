@@ -149,7 +149,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_anchor_spikes: float | None = None, guide_y_found: float | None = None,
             guide_z_spike: float | None = None, guide_anchor_free: float | None = None,
             guide_y_empty: float | None = None, guide_redistribute: float | None = None,
-            guide_far: float | None = None, tile: int | None = None,
+            tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -189,10 +189,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     of pixels where ~y did not read 0 while ~z^4 rests on more than one event (Gaussian width
     in px, 0 = off; None: the model's), as ``--guide-y-empty``; ``guide_redistribute``: what
     the final clamp took given back to the pixels around within their ranges (Gaussian width
-    in px, 0 = off; None: the model's), as ``--guide-redistribute``; ``guide_far``: where the
-    guide lies this many times outside a pixel's range and one of its estimates is settled,
-    the mean of ~y and the ~z^j's mean instead of the range's nearer end (0 = off, else > 1;
-    None: the model's), as ``--guide-far``; ``tile``,
+    in px, 0 = off; None: the model's), as ``--guide-redistribute``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -222,7 +219,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,
                                          "y_found": guide_y_found, "z_spike": guide_z_spike,
                                          "anchor_free": guide_anchor_free, "y_empty": guide_y_empty,
-                                         "redistribute": guide_redistribute, "far": guide_far},
+                                         "redistribute": guide_redistribute},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

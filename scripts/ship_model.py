@@ -76,9 +76,6 @@ RESHIP_NUMBERS = (
     ("--guide-y-empty", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
                              "of S px, where ~y did not read 0 while ~z^4 rests on more than one event "
                              "(GuideConfig.y_empty; 0 = off)", "guide", "y_empty"),
-    ("--guide-far", "F", "ship with a pixel at the mean of ~y and the ~z^j's mean where the guide lies more than "
-                         "F x outside its range and one of its estimates is settled (GuideConfig.far; 0 = off)",
-     "guide", "far"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "

@@ -101,10 +101,6 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
      "0 = off (default: the checkpoint's; the shipped model's 3)"),
-    ("--guide-far", "F", "far",
-     "envelope modes: where the guide lies more than F x outside a pixel's range (RGB means: a small light OIDN "
-     "flattened, or one it spread over a dark pixel) and one of its five estimates is settled, take the mean of "
-     "~y and the ~z^j's mean instead of the range's nearer end; 0 = off, else F > 1 (default: the checkpoint's)"),
 )
 
 
@@ -380,7 +376,6 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" zspike={guide.z_spike:g}" if guide.z_spike and guide.mode in ENVELOPE_MODES else ""
     spike += f" free={guide.anchor_free:g}" if guide.anchor_free and guide.mode in ENVELOPE_MODES else ""
     spike += f" redis={guide.redistribute:g}" if guide.redistribute and guide.mode in ENVELOPE_MODES else ""
-    spike += f" far={guide.far:g}" if guide.far and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

@@ -214,11 +214,6 @@ class GuideConfig:
     #: clamp took from the anchored image, over a Gaussian of this many px
     #: (:func:`redistribute`); 0 = off (checkpoints without it read as 0)
     redistribute: float = 0.0
-    #: envelope modes: > 1 gives a pixel the mean of ~y and the ~z^j's mean instead of the
-    #: guide held at the nearer end of its range where the guide lies more than this factor
-    #: outside that range (RGB means) and one of its five estimates is settled
-    #: (:func:`far_guide`); 0 = off (checkpoints without it read as 0)
-    far: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -287,9 +282,6 @@ class GuideConfig:
         if isinstance(self.y_empty, bool) or not isinstance(self.y_empty, (int, float)) \
                 or not math.isfinite(self.y_empty) or self.y_empty < 0:
             raise ValueError(f"guide setting 'y_empty' must be a width in px >= 0 (0 = off), got {self.y_empty!r}")
-        if isinstance(self.far, bool) or not isinstance(self.far, (int, float)) \
-                or not (self.far == 0 or (math.isfinite(self.far) and self.far > 1)):
-            raise ValueError(f"guide setting 'far' must be 0 (off) or a finite factor > 1, got {self.far!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
 
@@ -684,8 +676,6 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     the aim t (:func:`aim_spikes`, eps as for ``y_spike``) take part in the anchor with t = e
     (their gap is not spread into their neighbours) and are set to the inverse-variance mean
     of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W));
-    with ``cfg.far`` F the held guide replaced by the five estimates' centre where the guide lies
-    more than F x outside the range it is held in and some estimate is settled (:func:`far_guide`);
     with ``cfg.z_spike`` the range of ~y alone where the ~z^j are a lone spike over a settled ~y
     (:func:`lone_z_spikes`, ``variances`` (B, 5, H, W) the five variances of the mean);
     with ``cfg.anchor_free`` the anchored value of a pixel whose five estimates are all
@@ -722,14 +712,12 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
             raise ValueError("envelope: the guide's terms_passes needs the render's pass count")
         wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes, cfg))
         held = torch.minimum(torch.maximum(guide[:, :N_RGB], wide_lo), wide_hi)
-        held = far_guide(held, guide[:, :N_RGB], wide_lo, wide_hi, y, z, variances, cfg.far, guard.min_rel_error)
         # the widened room is the guide's, not the anchor's: the anchor's correction stays
         # within the five estimates' range or the held guide (its spread of a light's gap
         # would otherwise lift a ring of neighbours further, to the widened top)
         lo, hi = torch.minimum(lo, held), torch.maximum(hi, held)
     else:
         held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
-        held = far_guide(held, guide[:, :N_RGB], lo, hi, y, z, variances, cfg.far, guard.min_rel_error)
     if guard.enabled and guard.anchor > 0:
         target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
         spikes = None
@@ -749,39 +737,6 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
         if cfg.redistribute:
             held = redistribute(anchored, held, lo, hi, cfg.redistribute)
     return held
-
-
-def far_guide(held: torch.Tensor, guide: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, y: torch.Tensor,
-              z: torch.Tensor, variances: torch.Tensor | None, factor: float, r0: float) -> torch.Tensor:
-    """The held guide ``held`` (B, 3, H, W), with the pixels where the guide lies far outside
-    the range it was held in set to the mean of ~y and the ~z^j's mean:
-
-        out = (~y + mean_j ~z^j) / 2     where (gbar < lobar / F or gbar > F hibar) and some
-                                         estimate is settled (sqrt(V_k) < r0 Xbar_k)
-        out = held                       elsewhere
-
-    bars the RGB means, F = ``factor`` (0: off, ``held`` unchanged), ``guide``, ``lo``, ``hi``
-    (B, 3, H, W), y (B, 3, H, W), z (B, 4, 3, H, W), ``variances`` (B, 5, H, W) the five
-    variances of the mean, r0 the guard's ``min_rel_error``
-    (:func:`.guard.settled_mask`). Why: where OIDN flattened a small light (or spread one over
-    a dark pixel) the clamp returns the nearer end of the range, the one estimate that
-    missed the light (or caught the most of it): a guess at the range's extreme, decided by
-    one estimate. The five estimates' centre does not bet on either end. The settled test
-    keeps it out of photon speckle fields, where every estimate rests on one or two events
-    and OIDN's smooth image lying below them all is right on average (the literature
-    ``cornell-box``'s floor). Consistent: a convex combination of the five estimates, which
-    converge to the pixel's truth."""
-    from .guard import settled_mask
-
-    if not factor:
-        return held
-    if variances is None:
-        raise ValueError("the guide's far setting needs the five variances of the mean")
-    g, low, high = guide.mean(1, keepdim=True), lo.mean(1, keepdim=True), hi.mean(1, keepdim=True)
-    far = (g * factor < low) | (g > factor * high)
-    means = torch.cat([y.mean(1, keepdim=True), z.mean(2)], 1)
-    far &= settled_mask(means, variances, r0).any(1, keepdim=True)
-    return torch.where(far, 0.5 * (y + z.mean(1)), held)
 
 
 def redistribute(anchored: torch.Tensor, held: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
