@@ -387,7 +387,7 @@ def speckled(lum: torch.Tensor, variances: torch.Tensor, idx: tuple[torch.Tensor
     A small-bandwidth estimate on a surface that photons reach rarely (the literature
     ``cornell-box``'s glossy floor) is a field of one-photon speckles of comparable value
     whose 3 x 3 median is 0, so the median test takes every speckle for a firefly and the
-    region loses most of its energy (README, *Measured figures*). A firefly is a lone
+    region loses most of its energy (docs/RECONSTRUCTION_LOG.md). A firefly is a lone
     event far above every neighbour; steady bright neighbours (a light seen directly) are
     settled and are no peers. Keeping a pixel costs no consistency (module docstring).
     """
@@ -705,8 +705,8 @@ def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_varian
     (``0000_bright_emitters`` of this session's targeted data, scene seed 20028, N = 16:
     relMSE 0.10 of the best input with the anchor, 0.002 without it). Not shipped: it also
     removes the anchor from the sparse glossy floor of the literature ``cornell-box``, where
-    OIDN crushes the speckles and the plain anchor restores part of the mean (README,
-    *Measured figures*).
+    OIDN crushes the speckles and the plain anchor restores part of the mean
+    (docs/RECONSTRUCTION_LOG.md).
     """
     variance = anchor_variance.clamp(min=0.0)
     gap = gaussian_lowpass(anchor - image, sigma)

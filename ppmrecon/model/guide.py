@@ -56,7 +56,7 @@ The shipped envelope also widens the range the guide is held in towards paper 00
 terms at few passes (``terms_passes`` 16, :func:`terms_range`): a pixel's five estimates
 share its photons, so at few passes the truth often lies outside their range (measured on
 an unselected set of 96 generated images, 128 more, the 15 study renders and N = 1024:
-relMSE 3-12% lower on every set; README, *Measured figures*, eighth session).
+relMSE 3-12% lower on every set; docs/RECONSTRUCTION_LOG.md, eighth session).
 
 **Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
 envelope and seven other images held in the same range, mixed per pixel by a small trained
