@@ -298,7 +298,7 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
         "rerun `ppmrecon-train generate`)"]
 
 
-@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024"])
+@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16"])
 def test_data_configs_load(name):
     DataConfig.load(CONFIGS / f"{name}.json")
 
@@ -315,14 +315,19 @@ def test_v2_configs_are_the_issue_12_sets():
         assert json.loads(json.dumps({k: old[k] for k in LEGACY_CONFIG})) == LEGACY_CONFIG
 
 
-def test_holdout_config_shares_no_scene_seed_with_a_training_set():
-    """The hold-out set's scenes (seeds first_seed .. first_seed + scenes - 1) are none of
-    the shipped training sets', and it has every family of the issue-12 sets."""
-    hold = DataConfig.load(CONFIGS / "holdout.json")
+@pytest.mark.parametrize("name", ["holdout", "holdout_s16"])
+def test_holdout_config_shares_no_scene_seed_with_a_training_set(name):
+    """A hold-out set's scenes (seeds first_seed .. first_seed + scenes - 1) are none of
+    the shipped training sets' nor another hold-out's (the first one grown to 32 scenes
+    included), and it has every family of the issue-12 sets."""
+    hold = DataConfig.load(CONFIGS / f"{name}.json")
     held = set(range(hold.first_seed, hold.first_seed + hold.scenes))
-    for name in ("cpu", "tiny", "v2", "v2_cpu"):
-        cfg = DataConfig.load(CONFIGS / f"{name}.json")
-        assert not held & set(range(cfg.first_seed, cfg.first_seed + cfg.scenes)), name
+    for other in ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16"):
+        if other == name:
+            continue
+        cfg = DataConfig.load(CONFIGS / f"{other}.json")
+        scenes = 32 if other == "holdout" else cfg.scenes
+        assert not held & set(range(cfg.first_seed, cfg.first_seed + scenes)), other
     assert hold.families == DataConfig.load(CONFIGS / "v2.json").families
     assert hold.scenes >= 2 * len(hold.families)
 
