@@ -1,0 +1,147 @@
+"""A candidate, not shipped: the anchor's aim (and optionally the guide's source) chosen per pixel
+by a cascade ~z^4 -> ~z^3 -> ~z^2 (issue 12, sixteenth session).
+
+    .venv/bin/python benchmarks/anchor_cascade.py SET [--k K,...] [--speckle R] [--out DIR]
+
+SET is ``study`` (the renders of ``benchmarks/results/guide_s16_far/cache`` against the 1024-pass
+references of ``docs/cache``), ``study_n1024`` (``guide_s16_far_n1024/cache``, 4096-pass
+references) or a generated data set folder. Why: on ``holdout_n1024_s16``'s ``0001_caustic_paths``
+the wide estimates carry a bandwidth bias beside a bright caustic far above their noise, and the
+shipped aim (``guide.anchor_target``: ~z^4, or ~z^3 where ~z^4's low-pass departs from ~z^3's)
+follows them. The cascade takes one more step on the same test:
+
+    t34, V34 = the shipped aim and its variance
+    w = |D|^2 / (|D|^2 + k Var(G_sigma * ~z^2)),   D = G_sigma * (t34 - ~z^2)
+        (Var with ~z^2's neighbour correlation, as the shipped anchor; w = 0 in a speckle field,
+        :func:`ppmrecon.model.guide.speckle_field` at ratio R, where the guard's energy loss
+        makes ~z^2's low-pass dark)
+    t = t34 + w (~z^2 - t34),  V_t = V34 + w (V_2 - V34)
+
+and the envelope anchors to t (``anchor``); ``both`` also gives OIDN the composite t (with V_t)
+in place of ~z^4 as the guide's source. Consistent: t lies between estimates that converge to
+the pixel's truth. Per set: relMSE / 8x8-block relMSE over the best single input (geometric
+means), images worse than it, by N.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from ppmrecon import buffers as B  # noqa: E402
+from ppmrecon.fileio import write_text  # noqa: E402
+from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
+from study import REF_SEEDS, ref_path  # noqa: E402
+
+
+def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[str, np.ndarray]:
+    """The shipped image and the cascade's (``k=K anchor`` / ``k=K both``) for one render."""
+    from ppmrecon.model.guard import (correlated_lowpass_variance, gaussian_lowpass, guard_buffer,
+                                      noise_correlation, passes_of)
+    from ppmrecon.model.guide import anchor_target, envelope, speckle_field
+    from ppmrecon.model.infer import _scale, buffer_guide, denoise
+
+    guard, guide = net.guard, net.guide
+    out = {"shipped": denoise(buf, net).rgb}
+    g = guard_buffer(buf, guard)
+    scale = _scale(g)
+    est = torch.from_numpy(np.ascontiguousarray(g.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    var = torch.from_numpy(np.ascontiguousarray(g.variances, np.float32))[None]
+    y, z = est[:, 0], est[:, 1:]
+    v2 = var[:, 2:3].clamp(min=0.0)
+    t34, v34 = anchor_target(z, var[:, 3:4], var[:, 4:5], guide, guard.anchor)
+    noise2 = correlated_lowpass_variance(v2, noise_correlation(z[:, 1], v2, guide.anchor_window), guard.anchor)
+    d2 = gaussian_lowpass(t34 - z[:, 1], guard.anchor).square().mean(1, keepdim=True)
+    free = speckle_field(y, z, var, speckle) if speckle else None
+    shipped_planes = buffer_guide(g, guide, guard, scale)
+    for k in ks:
+        w = torch.where(d2 > 0, d2 / (d2 + k * noise2).clamp(min=torch.finfo(d2.dtype).tiny), torch.zeros_like(d2))
+        if free is not None:
+            w = torch.where(free, torch.zeros_like(w), w)
+        t, vt = torch.lerp(t34, z[:, 1], w), torch.lerp(v34, v2, w)
+        aimed = z.clone()
+        aimed[:, 2] = t                                   # the envelope anchors to "~z^3" = t
+        cfg = replace(guide, anchor_source=3, anchor_select=0.0)
+        for how in ("anchor", "both"):
+            planes = shipped_planes
+            if how == "both":
+                e2, var2 = g.estimates.copy(), g.variances.copy()
+                e2[4], var2[4] = t[0].permute(1, 2, 0).numpy(), vt[0, 0].numpy()
+                planes = buffer_guide(replace(g, estimates=e2, variances=var2), guide, guard, scale)
+            img = envelope(planes, y, aimed, vt, guard, cfg, scale, None, passes_of(g), None, var)
+            out[f"k={k:g} {how}"] = img[0].permute(1, 2, 0).numpy()
+    return out
+
+
+def renders(which: str):
+    """(label, passes, buffer, reference) of a set (see the module docstring)."""
+    from ppmrecon.train.datagen import REFERENCE, load_manifest
+
+    if which in ("study", "study_n1024"):
+        cache, ref_passes = ("guide_s16_far", 1024) if which == "study" else ("guide_s16_far_n1024", 4096)
+        for path in sorted((ROOT / "benchmarks" / "results" / cache / "cache").glob("*_multi.exr")):
+            key, width, passes_photons = path.name.rsplit("_", 4)[:3]
+            n, photons = (int(v) for v in passes_photons.split("x"))
+            pair = [ref_path(ROOT / "docs" / "cache", key, int(width), ref_passes, photons, s) for s in REF_SEEDS]
+            yield f"{key} N={n}", n, B.read_buffers(path), 0.5 * (B.read_rgb(pair[0])[0] + B.read_rgb(pair[1])[0])
+        return
+    data = Path(which)
+    for scene in load_manifest(data)["scenes"]:
+        ref, _ = B.read_rgb(data / scene["id"] / REFERENCE)
+        for item in scene.get("inputs", []):
+            yield f"{scene['id']} {item['file']}", item["passes"], B.read_buffers(data / scene["id"] / item["file"]), ref
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("set", help="study, study_n1024, or a generated data set folder")
+    ap.add_argument("--k", default="4", help="comma-separated noise multiples k (default 4)")
+    ap.add_argument("--speckle", type=float, default=0.5, help="speckle-field ratio R (0: no exclusion)")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results" / "anchor_cascade")
+    args = ap.parse_args()
+    from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint
+
+    net = load_checkpoint(DEFAULT_MODEL).model
+    ks = [float(k) for k in args.k.split(",")]
+    rows: dict[int, dict[str, list[tuple[float, float]]]] = {}
+    per_image = []
+    for label, n, buf, ref in renders(args.set):
+        best = min(relmse(e, ref) for e in buf.estimates)
+        best8 = min(relmse_blocks(e, ref) for e in buf.estimates)
+        scores = {k: (relmse(img, ref) / best, relmse_blocks(img, ref) / best8)
+                  for k, img in variants(buf, net, ks, args.speckle).items()}
+        for k, v in scores.items():
+            rows.setdefault(n, {}).setdefault(k, []).append(v)
+        per_image.append(f"| {label} | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in scores.values()) + " |")
+
+    def cell(v: list[tuple[float, float]]) -> str:
+        gm = lambda x: math.exp(float(np.mean(np.log(x))))  # noqa: E731
+        return f"{gm([a for a, _ in v]):.3f} / {gm([b for _, b in v]):.3f}, {sum(a > 1 for a, _ in v)} worse"
+
+    names = list(next(iter(rows.values())))
+    both = {k: [x for n in rows for x in rows[n][k]] for k in names}
+    name = Path(args.set).name
+    lines = [f"# The anchor's aim by a cascade ~z^4 -> ~z^3 -> ~z^2: `{name}` (issue 12, not shipped)", "",
+             f"Generated by `benchmarks/anchor_cascade.py {args.set} --k {args.k} --speckle {args.speckle:g}`. "
+             "relMSE / 8x8-block relMSE over the best single input, geometric means, and images worse than it.", "",
+             "| N | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),
+             "| all | " + " | ".join(cell(both[k]) for k in names) + " |"]
+    lines += [f"| {n} | " + " | ".join(cell(rows[n][k]) for k in names) + " |" for n in sorted(rows)]
+    lines += ["", "| image | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)] + per_image
+    args.out.mkdir(parents=True, exist_ok=True)
+    write_text(args.out / f"{name}.md", "\n".join(lines) + "\n")
+    print("\n".join(lines[:6 + len(rows) + 1]))
+
+
+if __name__ == "__main__":
+    main()
