@@ -41,7 +41,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
-from study import REF_SEEDS, ref_path  # noqa: E402
+from range_oracle import data_renders, study_renders  # noqa: E402
 
 
 def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[str, np.ndarray]:
@@ -85,21 +85,10 @@ def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[st
 
 def renders(which: str):
     """(label, passes, buffer, reference) of a set (see the module docstring)."""
-    from ppmrecon.train.datagen import REFERENCE, load_manifest
-
     if which in ("study", "study_n1024"):
         cache, ref_passes = ("guide_s16_far", 1024) if which == "study" else ("guide_s16_far_n1024", 4096)
-        for path in sorted((ROOT / "benchmarks" / "results" / cache / "cache").glob("*_multi.exr")):
-            key, width, passes_photons = path.name.rsplit("_", 4)[:3]
-            n, photons = (int(v) for v in passes_photons.split("x"))
-            pair = [ref_path(ROOT / "docs" / "cache", key, int(width), ref_passes, photons, s) for s in REF_SEEDS]
-            yield f"{key} N={n}", n, B.read_buffers(path), 0.5 * (B.read_rgb(pair[0])[0] + B.read_rgb(pair[1])[0])
-        return
-    data = Path(which)
-    for scene in load_manifest(data)["scenes"]:
-        ref, _ = B.read_rgb(data / scene["id"] / REFERENCE)
-        for item in scene.get("inputs", []):
-            yield f"{scene['id']} {item['file']}", item["passes"], B.read_buffers(data / scene["id"] / item["file"]), ref
+        return study_renders(ROOT / "benchmarks" / "results" / cache / "cache", ROOT / "docs" / "cache", ref_passes)
+    return data_renders(Path(which))
 
 
 def main() -> None:
