@@ -26,7 +26,6 @@ means), images worse than it, by N.
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -41,7 +40,7 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.metrics import relmse, relmse_blocks  # noqa: E402
-from range_oracle import data_renders, study_renders  # noqa: E402
+from range_oracle import data_renders, geomean, study_renders  # noqa: E402
 
 
 def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[str, np.ndarray]:
@@ -49,10 +48,9 @@ def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[st
     from ppmrecon.model.guard import (correlated_lowpass_variance, gaussian_lowpass, guard_buffer,
                                       noise_correlation, passes_of)
     from ppmrecon.model.guide import anchor_target, envelope, speckle_field
-    from ppmrecon.model.infer import _scale, buffer_guide, denoise
+    from ppmrecon.model.infer import _scale, buffer_envelope, buffer_guide
 
     guard, guide = net.guard, net.guide
-    out = {"shipped": denoise(buf, net).rgb}
     g = guard_buffer(buf, guard)
     scale = _scale(g)
     est = torch.from_numpy(np.ascontiguousarray(g.estimates, np.float32)).permute(0, 3, 1, 2)[None]
@@ -64,6 +62,8 @@ def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[st
     d2 = gaussian_lowpass(t34 - z[:, 1], guard.anchor).square().mean(1, keepdim=True)
     free = speckle_field(y, z, var, speckle) if speckle else None
     shipped_planes = buffer_guide(g, guide, guard, scale)
+    out = {"shipped": buffer_envelope(g, shipped_planes, guard, guide, scale=scale).rgb}
+    passes = passes_of(g)
     for k in ks:
         w = torch.where(d2 > 0, d2 / (d2 + k * noise2).clamp(min=torch.finfo(d2.dtype).tiny), torch.zeros_like(d2))
         if free is not None:
@@ -78,7 +78,7 @@ def variants(buf: B.BufferFile, net, ks: list[float], speckle: float) -> dict[st
                 e2, var2 = g.estimates.copy(), g.variances.copy()
                 e2[4], var2[4] = t[0].permute(1, 2, 0).numpy(), vt[0, 0].numpy()
                 planes = buffer_guide(replace(g, estimates=e2, variances=var2), guide, guard, scale)
-            img = envelope(planes, y, aimed, vt, guard, cfg, scale, None, passes_of(g), None, var)
+            img = envelope(planes, y, aimed, vt, guard, cfg, scale, None, passes, None, var)
             out[f"k={k:g} {how}"] = img[0].permute(1, 2, 0).numpy()
     return out
 
@@ -114,8 +114,7 @@ def main() -> None:
         per_image.append(f"| {label} | " + " | ".join(f"{a:.2f} / {b:.2f}" for a, b in scores.values()) + " |")
 
     def cell(v: list[tuple[float, float]]) -> str:
-        gm = lambda x: math.exp(float(np.mean(np.log(x))))  # noqa: E731
-        return f"{gm([a for a, _ in v]):.3f} / {gm([b for _, b in v]):.3f}, {sum(a > 1 for a, _ in v)} worse"
+        return f"{geomean([a for a, _ in v]):.3f} / {geomean([b for _, b in v]):.3f}, {sum(a > 1 for a, _ in v)} worse"
 
     names = list(next(iter(rows.values())))
     both = {k: [x for n in rows for x in rows[n][k]] for k in names}
@@ -133,4 +132,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from ppmrecon.errors import UsageError
+
+    try:
+        main()
+    except UsageError as exc:                               # a missing data set or manifest: one line
+        sys.exit(f"anchor_cascade: {exc}")

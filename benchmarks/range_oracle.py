@@ -50,11 +50,12 @@ def images(buf: B.BufferFile, ref: np.ndarray, net) -> dict[str, np.ndarray]:
     """The five images of the module docstring for one render, each (H, W, 3)."""
     from ppmrecon.model.guard import band_bounds, guard_buffer, passes_of
     from ppmrecon.model.guide import N_RGB, terms_range, terms_share
-    from ppmrecon.model.infer import _scale, buffer_guide, denoise
+    from ppmrecon.model.infer import _scale, buffer_envelope, buffer_guide
 
     guard, guide = net.guard, net.guide
     guarded = guard_buffer(buf, guard)
-    planes = buffer_guide(guarded, guide, guard, _scale(guarded))
+    scale = _scale(guarded)
+    planes = buffer_guide(guarded, guide, guard, scale)        # one OIDN run for the guide and the shipped image
     est = torch.from_numpy(np.ascontiguousarray(guarded.estimates, np.float32)).permute(0, 3, 1, 2)[None]
     y, z = est[:, 0], est[:, 1:]
     lo, hi = band_bounds(y, z, 1.0, None)
@@ -64,7 +65,7 @@ def images(buf: B.BufferFile, ref: np.ndarray, net) -> dict[str, np.ndarray]:
     def clamp(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
         return torch.minimum(torch.maximum(r, a), b)[0].permute(1, 2, 0).numpy()
 
-    return {"shipped": denoise(buf, net).rgb,
+    return {"shipped": buffer_envelope(guarded, planes, guard, guide, scale=scale).rgb,
             "guide": planes[0, :N_RGB].permute(1, 2, 0).numpy(),
             "oracle range": clamp(lo, hi),
             "oracle terms": clamp(*terms_range(y, z, lo, hi, share)),
@@ -83,12 +84,16 @@ def study_renders(cache: Path, ref_cache: Path, ref_passes: int) -> Iterator[tup
     """(label, N, render, reference) of every render in a ``bench_guide.py`` cache
     (``KEY_WIDTH_NxPHOTONS_sSEED_multi.exr``) whose two references of ``ref_passes`` passes are
     in ``ref_cache`` (their mean is the reference)."""
+    refs: dict[tuple[str, str, int], np.ndarray] = {}        # each scene's references read once, not per N
     for path in sorted(cache.glob("*_multi.exr")):
         key, width, passes_photons = path.name.rsplit("_", 4)[:3]
         n, photons = (int(v) for v in passes_photons.split("x"))
         pair = [ref_path(ref_cache, key, int(width), ref_passes, photons, seed) for seed in REF_SEEDS]
-        if all(p.exists() for p in pair):
-            yield f"{key} N={n}", n, B.read_buffers(path), 0.5 * (B.read_rgb(pair[0])[0] + B.read_rgb(pair[1])[0])
+        if not all(p.exists() for p in pair):
+            continue
+        if (key, width, photons) not in refs:
+            refs[key, width, photons] = 0.5 * (B.read_rgb(pair[0])[0] + B.read_rgb(pair[1])[0])
+        yield f"{key} N={n}", n, B.read_buffers(path), refs[key, width, photons]
 
 
 def data_renders(data: Path) -> Iterator[tuple[str, int, B.BufferFile, np.ndarray]]:
@@ -152,4 +157,9 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from ppmrecon.errors import UsageError
+
+    try:
+        main()
+    except UsageError as exc:                               # a missing data set or manifest: one line
+        sys.exit(f"range_oracle: {exc}")

@@ -298,8 +298,11 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
         "rerun `ppmrecon-train generate`)"]
 
 
-@pytest.mark.parametrize("name", ["cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16",
-                                  "holdout_n1024_s16"])
+#: Every shipped data set, loaded, and the hold-outs' seeds kept apart from them.
+SHIPPED_SETS = ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16", "holdout_n1024_s16")
+
+
+@pytest.mark.parametrize("name", SHIPPED_SETS)
 def test_data_configs_load(name):
     DataConfig.load(CONFIGS / f"{name}.json")
 
@@ -316,6 +319,17 @@ def test_v2_configs_are_the_issue_12_sets():
         assert json.loads(json.dumps({k: old[k] for k in LEGACY_CONFIG})) == LEGACY_CONFIG
 
 
+def _other_sets_seeds(name: str) -> dict[str, set[int]]:
+    """The scene seeds of every shipped data set but ``name``, each counted to at least 32
+    scenes (a set grown with ``--scenes``, as the first hold-out was, keeps its seeds)."""
+    out = {}
+    for other in SHIPPED_SETS:
+        if other != name:
+            cfg = DataConfig.load(CONFIGS / f"{other}.json")
+            out[other] = set(range(cfg.first_seed, cfg.first_seed + max(cfg.scenes, 32)))
+    return out
+
+
 @pytest.mark.parametrize("name", ["holdout", "holdout_s16"])
 def test_holdout_config_shares_no_scene_seed_with_a_training_set(name):
     """A hold-out set's scenes (seeds first_seed .. first_seed + scenes - 1) are none of
@@ -323,12 +337,8 @@ def test_holdout_config_shares_no_scene_seed_with_a_training_set(name):
     included), and it has every family of the issue-12 sets."""
     hold = DataConfig.load(CONFIGS / f"{name}.json")
     held = set(range(hold.first_seed, hold.first_seed + hold.scenes))
-    for other in ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16", "holdout_n1024_s16"):
-        if other == name:
-            continue
-        cfg = DataConfig.load(CONFIGS / f"{other}.json")
-        scenes = 32 if other == "holdout" else cfg.scenes
-        assert not held & set(range(cfg.first_seed, cfg.first_seed + scenes)), other
+    for other, seeds in _other_sets_seeds(name).items():
+        assert not held & seeds, other
     assert hold.families == DataConfig.load(CONFIGS / "v2.json").families
     assert hold.scenes >= 2 * len(hold.families)
 
@@ -341,11 +351,8 @@ def test_n1024_holdout_is_new_scenes_with_references_far_beyond_its_longest_inpu
     photons of the longest input."""
     deep = DataConfig.load(CONFIGS / f"{name}.json")
     seeds = set(range(deep.first_seed, deep.first_seed + deep.scenes))
-    for other in ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_s16", "holdout_n1024", "holdout_n1024_s16"):
-        if other == name:
-            continue
-        cfg = DataConfig.load(CONFIGS / f"{other}.json")
-        assert not seeds & set(range(cfg.first_seed, cfg.first_seed + max(cfg.scenes, 32))), other
+    for other, theirs in _other_sets_seeds(name).items():
+        assert not seeds & theirs, other
     families = DataConfig.load(CONFIGS / "v2.json").families
     assert set(deep.families) <= set(families) and deep.scenes >= len(deep.families)
     assert name != "holdout_n1024" or deep.families == families
