@@ -76,6 +76,10 @@ RESHIP_NUMBERS = (
     ("--guide-y-empty", "S", "ship with ~y's share in the guide scaled by the share of pixels, over a Gaussian "
                              "of S px, where ~y did not read 0 while ~z^4 rests on more than one event "
                              "(GuideConfig.y_empty; 0 = off)", "guide", "y_empty"),
+    ("--guide-cascade", "K", "ship with the envelope's anchor aim stepped on down to ~z^2 and ~z^1 where the wider "
+                             "estimates' bandwidth bias shows beyond K x the narrower one's noise, the range's wide "
+                             "ends pulled to it and OIDN given it in place of ~z^4 (GuideConfig.cascade; 0 = off)",
+     "guide", "cascade"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -327,6 +331,10 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f"~z^{guide.anchor_source + 1} where its low-pass agrees with ~z^{guide.anchor_source}'s within "
                f"{guide.anchor_select:g} x the latter's noise, else to ~z^{guide.anchor_source} (per pixel),"
                if guide.anchor_select and guide.anchor_source < 4 else f"~z^{guide.anchor_source}")
+            + (f" and on down to ~z^{guide.anchor_source - 1}..~z^1 where that aim's low-pass departs from the "
+               f"narrower estimate's by more than {guide.cascade:g} x the latter's noise (a wide kernel's bandwidth "
+               "bias beside a bright caustic), the wider ~z^j of the range pulled to that aim by as much and "
+               f"OIDN given it in place of ~z^{guide.source}," if guide.cascade else "")
             + " where they differ by more than its noise"
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"

@@ -412,6 +412,82 @@ def test_anchor_target_takes_the_wider_estimate_where_the_low_passes_agree():
     np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
 
 
+def _biased_wide(h: int = 16, w: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """z (1, 4, 3, H, W) at 1 with ~z^3 and ~z^4 at 3 on the right half (a wide kernel's
+    bandwidth bias far beyond the noise), the five variances (1e-3) and radii (r, sqrt(2) r, ...)."""
+    z = torch.full((1, 4, 3, h, w), 1.0)
+    z[:, 2:, :, :, w // 2:] = 3.0
+    var = torch.full((1, 5, h, w), 1e-3)
+    radii = torch.stack([torch.full((h, w), 0.01 * 2 ** (k / 2)) for k in range(5)])[None]
+    return z, var, radii
+
+
+def test_cascade_aim_steps_down_where_the_wide_estimates_are_biased():
+    """cascade: where ~z^3/~z^4 depart from ~z^2/~z^1 far beyond their noise the aim is the
+    narrow estimates' level and the wide ~z^j are pulled to it; where all agree (or the gap is
+    within k x the noise, or the narrow estimate's variance reads 0 beside noisy wider ones)
+    the aim is anchor_target's and no ~z^j moves; off or converged: nothing changes."""
+    from ppmrecon.model.guide import anchor_target, cascade_aim
+
+    z, var, radii = _biased_wide()
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, cascade=4.0, anchor_window=3.0)
+    aim = cascade_aim(z, var, radii, on, 1.5, None)
+    t34, v34 = anchor_target(z, var[:, 3:4], var[:, 4:5], on, 1.5)
+    assert torch.equal(aim.t[..., :4], t34[..., :4]) and torch.equal(aim.z[..., :4], z[..., :4])
+    assert torch.equal(aim.variance[..., :4], v34[..., :4])
+    assert torch.allclose(aim.t[..., 13:], torch.ones(1, 3, 16, 3), rtol=0, atol=2e-2)   # w = 1 - k noise / |D|^2
+    assert torch.allclose(aim.z[..., 13:], torch.ones(1, 4, 3, 16, 3), rtol=0, atol=2e-2)
+    assert bool(((aim.z >= 1.0) & (aim.z <= 3.0)).all())          # convex combinations of the estimates
+    # a gap within k x the noise: no step, no pull
+    small = z.clone()
+    small[:, 2:, :, :, 8:] = 1.05                                 # 0.05 against sqrt(Var(G * ~z^j)) ~ 0.03
+    calm = cascade_aim(small, var, radii, on, 1.5, None)
+    assert torch.equal(calm.z, small)
+    # ~z^2 and ~z^1 read variance 0 (their passes missed the bright photons) beside noisy wider
+    # ones: the floor V_i (r_i / r_j)^2 keeps the step from reading that gap as bias
+    lucky = var.clone()
+    lucky[:, 1:3] = 0.0
+    lucky[:, 3:] = 10.0
+    assert torch.equal(cascade_aim(z, lucky, radii, on, 1.5, None).z, z)
+    # a speckle field: no step
+    free = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+    assert torch.equal(cascade_aim(z, var, radii, on, 1.5, free).z, z)
+    same = torch.ones_like(z)
+    converged = cascade_aim(same, var, radii, on, 1.5, None)
+    assert torch.equal(converged.t, same[:, 0]) and torch.equal(converged.z, same)
+
+
+def test_cascade_in_the_envelope_and_the_guide():
+    """The envelope with the cascade on holds the biased wide ends out of the range and the
+    anchor at the narrow level (the image near 1, not 3, on the right); converged inputs are
+    returned exactly; the setting is checked and refuses what it cannot step from."""
+    from ppmrecon.model.infer import buffer_aim
+
+    z, var, radii = _biased_wide(24, 24)
+    buf = make_buffer(24, 24, seed=31)
+    est = np.empty((5, 24, 24, 3), np.float32)
+    est[0] = 1.0
+    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
+    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=4.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    cascaded = denoise(buf, model).rgb
+    plain = denoise(buf, model, guide=replace(on, cascade=0.0)).rgb
+    assert np.abs(cascaded[:, 16:] - 1.0).max() < 0.05
+    assert plain[:, 16:].mean() > cascaded[:, 16:].mean() + 0.5
+    assert buffer_aim(buf, replace(on, cascade=0.0), DEFAULT_ON) is None
+    assert buffer_aim(buf, on, replace(DEFAULT_ON, enabled=False)) is None
+    same = np.repeat(est[1:2], 5, axis=0)
+    np.testing.assert_array_equal(denoise(replace(buf, estimates=same), model).rgb, same[0])
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="cascade"):
+            replace(on, cascade=bad)
+    with pytest.raises(ValueError, match="anchor_source >= 2"):
+        replace(on, anchor_source=1)
+    with pytest.raises(ValueError, match="source >= 1"):
+        replace(on, source=0)
+
+
 def test_window_max_is_the_replicate_padded_max_pool():
     """window_max / window_max(op=min): the extremes over each pixel's K x K window, the
     window cut at the edges, as max_pool2d on a replicate-padded image."""
@@ -1029,6 +1105,21 @@ def test_cli_and_api_guide_redistribute(tmp_path, capsys):
     assert given.mean() >= plain.mean()
     assert (given <= est.max(0) + 1e-6).all() and (given >= 0).all()
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-redistribute")
+
+
+def test_cli_and_api_guide_cascade(tmp_path, capsys):
+    """--guide-cascade / guide_cascade= (the header says it; CLI and API agree; 0 turns it
+    off); negative or not a number: one clear line, exit 2, no output."""
+    z, var, radii = _biased_wide(24, 24)
+    buf = make_buffer(24, 24, seed=27)
+    est = buf.estimates.copy()
+    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
+    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    args = _envelope_cli(tmp_path, buf)
+    on = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "4", " cascade=4", guide_cascade=4.0)
+    off = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "0", "y=0", guide_cascade=0.0)
+    assert not np.array_equal(on, off)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-cascade")
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):

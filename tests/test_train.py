@@ -299,7 +299,8 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
 
 
 #: Every shipped data set, loaded, and the hold-outs' seeds kept apart from them.
-SHIPPED_SETS = ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16", "holdout_n1024_s16")
+SHIPPED_SETS = ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16", "holdout_n1024_s16",
+                "holdout_n1024_s17")
 
 
 @pytest.mark.parametrize("name", SHIPPED_SETS)

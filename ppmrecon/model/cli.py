@@ -97,6 +97,11 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y is not sparser "
      "than ~z^4 (under one photon event, mean^2 / variance < 1, where ~z^4 has more): a photon-starved ~y "
      "reads black with variance 0; 0 = off (default: the checkpoint's)"),
+    ("--guide-cascade", "K", "cascade",
+     "envelope modes: step the anchor's aim on down to ~z^2 and ~z^1 per pixel where its low-pass departs from "
+     "the narrower estimate's by more than K x that one's noise (a wide kernel's bandwidth bias beside a bright "
+     "caustic), pull the wider ~z^j of the pixel's range towards it, and give OIDN that aim in place of ~z^4; "
+     "0 = off (default: the checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -376,6 +381,7 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" zspike={guide.z_spike:g}" if guide.z_spike and guide.mode in ENVELOPE_MODES else ""
     spike += f" free={guide.anchor_free:g}" if guide.anchor_free and guide.mode in ENVELOPE_MODES else ""
     spike += f" redis={guide.redistribute:g}" if guide.redistribute and guide.mode in ENVELOPE_MODES else ""
+    spike += f" cascade={guide.cascade:g}" if guide.cascade and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

@@ -214,6 +214,14 @@ class GuideConfig:
     #: clamp took from the anchored image, over a Gaussian of this many px
     #: (:func:`redistribute`); 0 = off (checkpoints without it read as 0)
     redistribute: float = 0.0
+    #: envelope modes: > 0 steps the anchor's aim on down ~z^(m-1), ..., ~z^1 per pixel
+    #: wherever the aim's low-pass departs from the narrower estimate's by more than this k
+    #: times the latter's noise, pulls the wider ~z^j the range is made of towards the final
+    #: aim by as much, and gives OIDN that aim in place of its source estimate
+    #: (:func:`cascade_aim`): a wide kernel beside a bright caustic gathers its photons
+    #: (``0001_caustic_paths`` of ``holdout_n1024_s16``: 3.5-4.3x its best input at every N);
+    #: 0 = off (checkpoints without it read as 0)
+    cascade: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -284,6 +292,12 @@ class GuideConfig:
             raise ValueError(f"guide setting 'y_empty' must be a width in px >= 0 (0 = off), got {self.y_empty!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
+        if isinstance(self.cascade, bool) or not isinstance(self.cascade, (int, float)) \
+                or not math.isfinite(self.cascade) or self.cascade < 0:
+            raise ValueError(f"guide setting 'cascade' must be a factor >= 0 (0 = off), got {self.cascade!r}")
+        if self.cascade and (self.source == 0 or self.anchor_source == 1):
+            raise ValueError("guide setting 'cascade' steps the aim down from ~z^(anchor_source) to ~z^1 and "
+                             "gives it to OIDN in place of a ~z^j: it needs anchor_source >= 2 and source >= 1")
 
     def in_mode(self, mode: str) -> "GuideConfig":
         """The same settings in guide mode ``mode``; a learned temperature belongs to Eq. 6's
@@ -565,6 +579,65 @@ def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance
     return torch.lerp(wide, narrow, w), torch.lerp(wider_variance, anchor_variance, w)
 
 
+class Aim(NamedTuple):
+    """The cascade's anchor aim (:func:`cascade_aim`): t (B, 3, H, W), its variance of the
+    mean (B, 1, H, W), and the four ~z^j pulled towards t (B, 4, 3, H, W)."""
+
+    t: torch.Tensor
+    variance: torch.Tensor
+    z: torch.Tensor
+
+
+def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, cfg: GuideConfig, sigma: float,
+                free: torch.Tensor | None) -> Aim:
+    """The anchor aim stepped on down to the narrower ~z^j (``cfg.cascade`` k), per pixel:
+
+        t, V_t = :func:`anchor_target` (~z^m or between ~z^m and ~z^(m+1)),  m = ``cfg.anchor_source``
+        for j = m-1, ..., 1:
+            D = G_sigma * (t - ~z^j),   w_j = max(0, |D|^2 - k Var(G_sigma * ~z^j)) / |D|^2
+            t = t + w_j (~z^j - t),    V_t = V_t + w_j (V_j - V_t)
+        ~z^i' = ~z^i + p_i (t - ~z^i),  p_i = 1 - prod_{j < i} (1 - w_j)
+
+    z (B, 4, 3, H, W), ``variances`` and ``radii`` (B, 5, H, W) in schema order, ``free`` the
+    speckle field (:func:`speckle_field`, w = 0 there: the guard's thinning makes a narrow
+    low-pass dark) or None. |D|^2 is the mean over R, G, B; Var(G_sigma * ~z^j) takes the
+    neighbour correlation of ~z^j's noise (``cfg.anchor_window``,
+    :func:`.guard.correlated_lowpass_variance`) with V_j floored at V_i (r_i / r_j)^2 of every
+    wider ~z^i: a photon estimate's variance of the mean grows as 1 / its kernel area, and a
+    narrow kernel whose passes missed the rare bright photons reads a low sample variance.
+    Unlike :func:`anchor_target`'s soft weight, w_j is 0 for a gap within k times the noise:
+    a narrower estimate is only taken where the wider one's bandwidth bias shows.
+    Why: beside a bright caustic the wide kernels gather its photons (``0001_caustic_paths``
+    of ``holdout_n1024_s16``, N = 1024, pixel (67, 67): 1.40 / 1.62 / 1.98 / 6.08 / 19.3 in ~y,
+    ~z^1..~z^4 against a reference of 1.68), and the guide of ~z^4, the range's upper end and
+    the anchor all followed them: 3.5-4.3x the best input at every N. Measured in
+    docs/RECONSTRUCTION_LOG.md (seventeenth session).
+    Consistent: t and every ~z^i' are convex combinations of estimates that converge to x_c.
+    """
+    from .guard import correlated_lowpass_variance, gaussian_lowpass, noise_correlation
+
+    m, k = cfg.anchor_source, cfg.cascade
+    t, vt = anchor_target(z, variances[:, m:m + 1], variances[:, m + 1:m + 2] if m < z.shape[1] else None,
+                          cfg, sigma)
+    tiny = torch.finfo(z.dtype).tiny
+    pulled = torch.zeros_like(z[:, :, :1])
+    for j in range(m - 1, 0, -1):                         # ~z^j, schema index j, z index j - 1
+        vj = variances[:, j:j + 1].clamp(min=0.0)
+        rj = radii[:, j:j + 1]
+        floor = vj
+        for i in range(j + 1, variances.shape[1]):
+            grown = variances[:, i:i + 1].clamp(min=0.0) * (radii[:, i:i + 1] / rj.clamp(min=tiny)).square()
+            floor = torch.maximum(floor, torch.where(rj > 0, grown, torch.zeros_like(vj)))
+        noise = correlated_lowpass_variance(floor, noise_correlation(z[:, j - 1], floor, cfg.anchor_window), sigma)
+        d2 = gaussian_lowpass(t - z[:, j - 1], sigma).square().mean(1, keepdim=True)
+        w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
+        if free is not None:
+            w = torch.where(free, torch.zeros_like(w), w)
+        t, vt = torch.lerp(t, z[:, j - 1], w), torch.lerp(vt, vj, w)
+        pulled[:, j:] = 1.0 - (1.0 - pulled[:, j:]) * (1.0 - w[:, None])
+    return Aim(t, vt, torch.lerp(z, t[:, None], pulled))
+
+
 def aim_spikes(target: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:
     """The isolated bright pixels of the anchor's aim, (B, 1, H, W) bool: RGB mean above
     ``ratio`` x (the second largest of its eight neighbours' + eps), i.e. a light of one or
@@ -652,7 +725,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
              guard: GuardConfig, cfg: GuideConfig, scale: torch.Tensor | float = 0.0,
              wider_variance: torch.Tensor | None = None, passes: float | None = None,
              spike_variances: tuple[torch.Tensor, torch.Tensor] | None = None,
-             variances: torch.Tensor | None = None) -> torch.Tensor:
+             variances: torch.Tensor | None = None, aim: Aim | None = None) -> torch.Tensor:
     """The guide held in the consistent envelope ("envelope" mode), (B, 3, H, W):
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
@@ -685,6 +758,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     value unclamped: 0.63 -> 0.69 of its best input from one such pixel) and a light beside
     the pixel does not widen it (``0164_bright_emitters`` N = 4 with the Gaussian mean of
     the ends: 0.20 -> 51).
+    With ``aim`` (:func:`cascade_aim`, ``cfg.cascade``) the anchor aims at its t and every
+    range is that of ~y and its pulled ~z^j.
     Consistent there too: the anchored value converges (the held guide does, and the
     anchor's correction, a fixed blur of ``t - e``, goes to 0), and the widened range
     contains [lo, hi], whose ends converge to the truth.
@@ -702,6 +777,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     """
     from .guard import anchor_where_biased, band_bounds
 
+    if aim is not None:
+        z = aim.z
     spikes = y_spike_mask(y, z, cfg, guard, scale)
     lo, hi = band_bounds(y, z, guard.band if guard.enabled and guard.band else 1.0, spikes)
     z_out = z_spike_mask(y, z, variances, cfg, guard, scale)
@@ -719,7 +796,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     else:
         held = torch.minimum(torch.maximum(guide[:, :N_RGB], lo), hi)
     if guard.enabled and guard.anchor > 0:
-        target, target_variance = anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
+        target, target_variance = (aim.t, aim.variance) if aim is not None else \
+            anchor_target(z, anchor_variance, wider_variance, cfg, guard.anchor)
         spikes = None
         if cfg.anchor_spikes:
             if spike_variances is None:

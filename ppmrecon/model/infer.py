@@ -35,8 +35,8 @@ from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
 from .chooser import Chooser, band, candidates, features
-from .guide import ENVELOPE_MODES, GuideConfig, GuideImages, envelope, guide_images, guided_logits, y_spike_mask, \
-    z_spike_mask
+from .guide import (ENVELOPE_MODES, Aim, GuideConfig, GuideImages, cascade_aim, envelope, guide_images, guided_logits,
+                    speckle_field, y_spike_mask, z_spike_mask)
 from .guide import planes as guide_planes_of
 from .kpn import KPN
 
@@ -168,8 +168,9 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
             raise UsageError("guide mode 'chooser': this model has no chooser "
                              "(train one with `ppmrecon-train chooser`, or use --guide-mode envelope)")
         scale = _scale(buf) if scale is None else scale
-        images, planes = buffer_guide_images(buf, guide, guard, scale, need_y=chooser is not None)
-        result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress, scale)
+        aim = buffer_aim(buf, guide, guard)
+        images, planes = buffer_guide_images(buf, guide, guard, scale, need_y=chooser is not None, aim=aim)
+        result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress, scale, aim)
         if chooser is None:
             return result
         return _choose(buf, result.rgb, images, chooser, scale, device, progress, guide, guard)
@@ -191,12 +192,33 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
     return buffer_guide_images(buf, guide, guard, scale)[1]
 
 
+def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim | None:
+    """:func:`.guide.cascade_aim` of a whole (guarded) buffer file; None where the guide's
+    cascade is off (or the guard, whose anchor width it takes, is)."""
+    if not (guide.cascade and guide.mode in ENVELOPE_MODES and guard.enabled and guard.anchor > 0):
+        return None
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    var = torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None]
+    radii = torch.from_numpy(np.ascontiguousarray(buf.radii, np.float32))[None]
+    y, z = est[:, 0], est[:, 1:]
+    with torch.no_grad():
+        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free))
+
+
 def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig, scale: float | None = None,
-                        need_y: bool = False) -> tuple[GuideImages, torch.Tensor]:
+                        need_y: bool = False, aim: Aim | None = None) -> tuple[GuideImages, torch.Tensor]:
     """:func:`.guide.guide_images` of a whole (guarded) buffer file and the guide's planes
-    (1, 4, H, W); ``need_y``: OIDN's image of ~y is made even where the guide does not use it."""
+    (1, 4, H, W); ``need_y``: OIDN's image of ~y is made even where the guide does not use it;
+    ``aim`` (:func:`buffer_aim`; made here where the guide's cascade is on and it is None):
+    OIDN denoises its t, with its variance, in place of the guide's source estimate."""
     if scale is None:
         scale = _scale(buf)
+    aim = buffer_aim(buf, guide, guard) if aim is None else aim
+    if aim is not None:
+        estimates, variances = buf.estimates.copy(), buf.variances.copy()
+        estimates[guide.source] = aim.t[0].permute(1, 2, 0).numpy()
+        variances[guide.source] = aim.variance[0, 0].numpy()
+        buf = replace(buf, estimates=estimates, variances=variances)
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
     images = guide_images(buf.estimates, buf.albedo, buf.normal, guide, scale, floor, buf.variances, need_y)
     return images, guide_planes_of(images.guide, guide, scale, floor)
@@ -259,11 +281,15 @@ def _choose(buf: BufferFile, envelope_rgb: np.ndarray, images: GuideImages, choo
 
 def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, guide: GuideConfig,
                     device: str | torch.device = "cpu", progress: ProgressFn | None = None,
-                    scale: float | None = None) -> Denoised:
+                    scale: float | None = None, aim: Aim | None = None) -> Denoised:
     """The guide's envelope (:func:`.guide.envelope`) of a whole (guarded) buffer file: no
     network, no tiles (a few whole-image passes of elementwise work and one blur);
-    ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
+    ``scale``: the file's :func:`.guard.image_scale` when the caller has it already; ``aim``:
+    the file's :func:`buffer_aim` (made here where the guide's cascade is on and it is None)."""
     device = torch.device(device)
+    aim = buffer_aim(buf, guide, guard) if aim is None else aim
+    if aim is not None:
+        aim = Aim(*(a.to(device) for a in aim))
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
     def variance_of(k: int) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(buf.variances[k], np.float32))[None, None].to(device)
@@ -278,7 +304,7 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
                  if guide.z_spike or guide.anchor_free else None)
     with torch.no_grad():
         image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
-                         wider, passes, spike_variances, variances)
+                         wider, passes, spike_variances, variances, aim)
     if progress is not None:
         progress(1, 1)
     if not torch.isfinite(image).all():
