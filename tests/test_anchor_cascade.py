@@ -1,24 +1,15 @@
 """benchmarks/anchor_cascade.py: its full variant is what ``GuideConfig.cascade`` ships."""
-import importlib.util
-import sys
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint
 from ppmrecon.model.infer import denoise
-from tests.conftest import make_buffer
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.conftest import load_script, make_buffer
 
 
 def _module():
-    sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location("anchor_cascade", BENCH / "anchor_cascade.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks", "anchor_cascade")
 
 
 def test_the_full_variant_is_denoise_with_the_cascade_and_the_parts_differ():

@@ -1,23 +1,14 @@
 """benchmarks/range_oracle.py: the oracles are the reference held in nested ranges."""
-import importlib.util
-import sys
-from pathlib import Path
 
 import numpy as np
 
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint
 from ppmrecon.metrics import relmse
-from tests.conftest import make_buffer
-
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+from tests.conftest import load_script, make_buffer
 
 
 def _module():
-    sys.path.insert(0, str(BENCH))
-    spec = importlib.util.spec_from_file_location("range_oracle", BENCH / "range_oracle.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("benchmarks", "range_oracle")
 
 
 def test_oracles_hold_the_reference_in_ever_wider_ranges():

@@ -3,11 +3,9 @@ settings keeps the weights and the card's training part, and records the change.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -17,8 +15,8 @@ from ppmrecon.model.features import FeatureConfig
 from ppmrecon.model.guard import DEFAULT_ON
 from ppmrecon.model.guide import DEFAULT_GUIDE
 from ppmrecon.model.kpn import build
+from tests.conftest import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
 CARD = """# Model card: `default.pt`
 
 The model `ppmrecon-denoise` uses when `--model` is not given. Written by `scripts/ship_model.py runs/x` from the run's files.
@@ -43,9 +41,7 @@ Limits: trained on SPPM inputs only.
 
 @pytest.fixture
 def ship_model(tmp_path, monkeypatch):
-    spec = importlib.util.spec_from_file_location("ship_model", ROOT / "scripts" / "ship_model.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
+    module = load_script("scripts", "ship_model")
     monkeypatch.setattr(module, "DEFAULT_MODEL", tmp_path / "default.pt")
     model = build("tiny", FeatureConfig(scale_free=True), DEFAULT_ON, replace(DEFAULT_GUIDE, mode="envelope"))
     C.save_checkpoint(tmp_path / "default.pt", model, {"trained": True})
@@ -230,3 +226,16 @@ def test_reship_aims_the_anchor_at_another_estimate(ship_model, tmp_path, monkey
         _run(ship_model, monkeypatch, "--guide-anchor-source", "5")
     with pytest.raises(SystemExit):                               # not an index: argparse refuses it
         _run(ship_model, monkeypatch, "--guide-anchor-source", "2.5")
+
+
+def test_reship_with_the_anchor_cascade(ship_model, tmp_path, monkeypatch):
+    """--guide-cascade K: the checkpoint's guide says it, the card's shipped row describes it;
+    a value the config refuses is one line naming the option."""
+    _run(ship_model, monkeypatch, "--guide-cascade", "4")
+    assert C.load_checkpoint(tmp_path / "default.pt").model.guide.cascade == 4.0
+    card = (tmp_path / "default.md").read_text()
+    assert "and on down to ~z^2..~z^1 where that aim's low-pass departs from the narrower estimate's by more " \
+           "than 4 x the latter's noise" in card
+    assert "OIDN given it in place of ~z^4" in card
+    with pytest.raises(SystemExit, match="--guide-cascade"):
+        _run(ship_model, monkeypatch, "--guide-cascade", "-1")
