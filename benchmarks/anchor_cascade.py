@@ -11,10 +11,11 @@ guide (OIDN of ~z^4), the range's upper end and the anchor's aim (~z^4 or ~z^3) 
 them. The cascade steps the aim on down to ~z^2 and ~z^1 where that bias shows; per k, the
 variants are
 
-* ``k=K aim``: the envelope anchored to the cascade's aim t, its range and guide as shipped;
+* ``no cascade``: the shipped settings with ``cascade`` 0 (as shipped before 2026-12-06);
+* ``k=K aim``: the envelope anchored to the cascade's aim t, its range and guide as without it;
 * ``k=K aim+range``: also the range of ~y and the pulled ~z^j;
 * ``k=K``: also OIDN given t in place of ~z^4 (what ``GuideConfig.cascade = K`` ships; the
-  image is ``denoise``'s with that setting).
+  image is ``denoise``'s with that setting; the shipped default has k = 4).
 
 Per set: relMSE / 8x8-block relMSE over the best single input (geometric means), images
 worse than it, by N.
@@ -41,21 +42,21 @@ from range_oracle import data_renders, geomean, study_renders  # noqa: E402
 
 
 def variants(buf: B.BufferFile, net, ks: list[float]) -> dict[str, np.ndarray]:
-    """The shipped image and the cascade's three variants per k (module docstring), each (H, W, 3)."""
+    """The image without the cascade and the cascade's three variants per k (module docstring),
+    each (H, W, 3)."""
     from ppmrecon.model.guard import guard_buffer
-    from ppmrecon.model.guide import Aim
     from ppmrecon.model.infer import _scale, buffer_aim, buffer_envelope, buffer_guide, buffer_guide_images
 
-    guard, guide = net.guard, net.guide
+    guard, guide = net.guard, replace(net.guide, cascade=0.0)
     g = guard_buffer(buf, guard)
     scale = _scale(g)
     shipped_planes = buffer_guide(g, guide, guard, scale)
-    out = {"shipped": buffer_envelope(g, shipped_planes, guard, guide, scale=scale).rgb}
+    out = {"no cascade": buffer_envelope(g, shipped_planes, guard, guide, scale=scale).rgb}
     z = torch.from_numpy(np.ascontiguousarray(g.estimates[1:], np.float32)).permute(0, 3, 1, 2)[None]
     for k in ks:
         cfg = replace(guide, cascade=k)
         aim = buffer_aim(g, cfg, guard)
-        out[f"k={k:g} aim"] = buffer_envelope(g, shipped_planes, guard, cfg, scale=scale, aim=Aim(aim.t, aim.variance, z)).rgb
+        out[f"k={k:g} aim"] = buffer_envelope(g, shipped_planes, guard, cfg, scale=scale, aim=aim._replace(z=z)).rgb
         out[f"k={k:g} aim+range"] = buffer_envelope(g, shipped_planes, guard, cfg, scale=scale, aim=aim).rgb
         planes = buffer_guide_images(g, cfg, guard, scale, aim=aim)[1]
         out[f"k={k:g}"] = buffer_envelope(g, planes, guard, cfg, scale=scale, aim=aim).rgb

@@ -145,9 +145,11 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     off = denoise(buf, shipped, guard=GuardConfig(), precision="float32").rgb
     assert relmse(no_anchor, clean) <= relmse(off, clean) * 1.01
     # held in the five estimates' range, or (the shipped terms range) in that range widened
-    # towards Eq. 6's terms for this render's N (guide.terms_range)
+    # towards Eq. 6's terms for this render's N (guide.terms_range), of ~y and the ~z^j as the
+    # shipped anchor cascade pulled them (infer.buffer_aim)
     from ppmrecon.model.guard import passes_of
     from ppmrecon.model.guide import terms_range, terms_share
+    from ppmrecon.model.infer import buffer_aim
 
     narrow = denoise(buf, shipped, guard=DEFAULT_ON, guide=replace(shipped.guide, terms_passes=0.0),
                      precision="float32").rgb
@@ -155,8 +157,12 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     on = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32").rgb
     assert shipped.guide.terms_passes > 0
     est = torch.from_numpy(buf.estimates).permute(0, 3, 1, 2)[None]
-    lo, hi = est.amin(1), est.amax(1)
-    wide_lo, wide_hi = terms_range(est[:, 0], est[:, 1:], lo, hi, terms_share(passes_of(buf), shipped.guide))
+    aim = buffer_aim(buf, shipped.guide, DEFAULT_ON)
+    assert aim is not None                                   # the shipped default pulls them
+    y, z = est[:, 0], aim.z
+    lo, hi = torch.minimum(y, z.amin(1)), torch.maximum(y, z.amax(1))
+    assert bool((lo >= est.amin(1)).all() and (hi <= est.amax(1)).all())     # pulled within the range
+    wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes_of(buf), shipped.guide))
     out = torch.from_numpy(on).permute(2, 0, 1)[None]
     assert bool((out >= wide_lo - 1e-6).all() and (out <= wide_hi + 1e-6).all())
     # The anchor brings ~z^3's low frequencies where they differ from the output's; here every

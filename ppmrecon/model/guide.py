@@ -58,6 +58,12 @@ share its photons, so at few passes the truth often lies outside their range (me
 an unselected set of 96 generated images, 128 more, the 15 study renders and N = 1024:
 relMSE 3-12% lower on every set; docs/RECONSTRUCTION_LOG.md, eighth session).
 
+**The anchor cascade** (``cascade`` k, :func:`cascade_aim`; the shipped default has k = 4): the
+anchor's aim steps on down to ~z^2 and ~z^1 wherever its low-pass departs from the narrower
+estimate's by more than k times that one's noise, the range's wider ~z^j are pulled to the
+final aim, and OIDN denoises that aim in place of ~z^4: beside a bright caustic the wide kernels
+gather its photons, and the guide, the range and the anchor otherwise all follow them.
+
 **Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
 envelope and seven other images held in the same range, mixed per pixel by a small trained
 network (:mod:`.chooser`); consistent by the same argument.
@@ -581,11 +587,13 @@ def anchor_target(z: torch.Tensor, anchor_variance: torch.Tensor, wider_variance
 
 class Aim(NamedTuple):
     """The cascade's anchor aim (:func:`cascade_aim`): t (B, 3, H, W), its variance of the
-    mean (B, 1, H, W), and the four ~z^j pulled towards t (B, 4, 3, H, W)."""
+    mean (B, 1, H, W), the four ~z^j pulled towards t (B, 4, 3, H, W), and the speckle field
+    the steps left alone (:func:`speckle_field` of the buffer's own estimates, or None)."""
 
     t: torch.Tensor
     variance: torch.Tensor
     z: torch.Tensor
+    free: torch.Tensor | None = None
 
 
 def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, cfg: GuideConfig, sigma: float,
@@ -621,13 +629,13 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
                           cfg, sigma)
     tiny = torch.finfo(z.dtype).tiny
     pulled = torch.zeros_like(z[:, :, :1])
+    energy = variances.clamp(min=0.0) * radii.square()   # V_i r_i^2: V_i (r_i / r_j)^2 = V_i r_i^2 / r_j^2
+    wider = energy[:, m:].amax(1, keepdim=True)           # the largest over the estimates wider than ~z^j
     for j in range(m - 1, 0, -1):                         # ~z^j, schema index j, z index j - 1
         vj = variances[:, j:j + 1].clamp(min=0.0)
-        rj = radii[:, j:j + 1]
-        floor = vj
-        for i in range(j + 1, variances.shape[1]):
-            grown = variances[:, i:i + 1].clamp(min=0.0) * (radii[:, i:i + 1] / rj.clamp(min=tiny)).square()
-            floor = torch.maximum(floor, torch.where(rj > 0, grown, torch.zeros_like(vj)))
+        rj2 = radii[:, j:j + 1].square()
+        floor = torch.where(rj2 > 0, torch.maximum(vj, wider / rj2.clamp(min=tiny)), vj)
+        wider = torch.maximum(wider, energy[:, j:j + 1])
         noise = correlated_lowpass_variance(floor, noise_correlation(z[:, j - 1], floor, cfg.anchor_window), sigma)
         d2 = gaussian_lowpass(t - z[:, j - 1], sigma).square().mean(1, keepdim=True)
         w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
@@ -635,7 +643,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
             w = torch.where(free, torch.zeros_like(w), w)
         t, vt = torch.lerp(t, z[:, j - 1], w), torch.lerp(vt, vj, w)
         pulled[:, j:] = 1.0 - (1.0 - pulled[:, j:]) * (1.0 - w[:, None])
-    return Aim(t, vt, torch.lerp(z, t[:, None], pulled))
+    return Aim(t, vt, torch.lerp(z, t[:, None], pulled), free)
 
 
 def aim_spikes(target: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:
@@ -758,8 +766,9 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     value unclamped: 0.63 -> 0.69 of its best input from one such pixel) and a light beside
     the pixel does not widen it (``0164_bright_emitters`` N = 4 with the Gaussian mean of
     the ends: 0.20 -> 51).
-    With ``aim`` (:func:`cascade_aim`, ``cfg.cascade``) the anchor aims at its t and every
-    range is that of ~y and its pulled ~z^j.
+    With ``aim`` (:func:`cascade_aim`, ``cfg.cascade``) the anchor aims at its t, every
+    range is that of ~y and its pulled ~z^j, and the speckle field is the aim's (that of
+    the buffer's own estimates).
     Consistent there too: the anchored value converges (the held guide does, and the
     anchor's correction, a fixed blur of ``t - e``, goes to 0), and the widened range
     contains [lo, hi], whose ends converge to the truth.
@@ -808,7 +817,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
                                    cfg.anchor_window, cfg.anchor_settled)
         if spikes is not None:
             held = torch.where(spikes, spike_estimate(y, z[:, -1], *spike_variances), held)
-        free = speckle_field(y, z, variances, cfg.anchor_free)
+        free = aim.free if aim is not None else speckle_field(y, z, variances, cfg.anchor_free)
         if free is not None:
             lo, hi = speckle_range(lo, hi, free)
         anchored, held = held, torch.minimum(torch.maximum(held, lo), hi)

