@@ -144,7 +144,10 @@ def variants(models: dict) -> dict:
                 for value in values if when else ():
                     if value == getattr(base, key):
                         continue
-                    cfg = replace(base, **{key: value})
+                    try:
+                        cfg = replace(base, **{key: value})
+                    except ValueError:        # a value the rest of the settings rule out (cascade: anchor_source 1)
+                        continue
                     g, gd = (cfg, guard) if which == "guide" else (net.guide, cfg)
                     shown = value if isinstance(value, str) else f"{value:g}"
                     out[f"{name} {label}={shown}"] = lambda buf, net=net, g=g, gd=gd: denoise(
