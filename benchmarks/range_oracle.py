@@ -12,10 +12,11 @@ over the best single input of:
 * ``shipped``: ``denoise`` with the shipped model;
 * ``guide``: the shipped guide image g itself (OIDN's, not consistent);
 * ``oracle range``: the reference clamped into each pixel's range of its five guarded
-  estimates, per channel (the best any guide could do with the bare clamp);
+  estimates, per channel (the best any guide could do with the bare clamp; the shipped anchor
+  cascade holds the guide in the range of the pulled ~z^j, which lies inside this one);
 * ``oracle terms``: the same in the range widened towards paper 002 Eq. 6's terms over the 3 x 3
   window, by the shipped share 1 / (1 + N / M) (``guide.terms_range``), the range the shipped
-  guide is held in;
+  guide was held in before the cascade;
 * ``oracle terms all``: widened the whole way (share 1), each end by at most the range's width.
 
 The two oracles read the reference, so they are bounds, not methods. An ``oracle`` ratio near
@@ -50,12 +51,13 @@ def images(buf: B.BufferFile, ref: np.ndarray, net) -> dict[str, np.ndarray]:
     """The five images of the module docstring for one render, each (H, W, 3)."""
     from ppmrecon.model.guard import band_bounds, guard_buffer, passes_of
     from ppmrecon.model.guide import N_RGB, terms_range, terms_share
-    from ppmrecon.model.infer import _scale, buffer_envelope, buffer_guide
+    from ppmrecon.model.infer import _scale, buffer_aim, buffer_envelope, buffer_guide_images
 
     guard, guide = net.guard, net.guide
     guarded = guard_buffer(buf, guard)
     scale = _scale(guarded)
-    planes = buffer_guide(guarded, guide, guard, scale)        # one OIDN run for the guide and the shipped image
+    aim = buffer_aim(guarded, guide, guard)                    # the cascade's, once (None where it is off)
+    planes = buffer_guide_images(guarded, guide, guard, scale, aim=aim)[1]   # one OIDN run for both images
     est = torch.from_numpy(np.ascontiguousarray(guarded.estimates, np.float32)).permute(0, 3, 1, 2)[None]
     y, z = est[:, 0], est[:, 1:]
     lo, hi = band_bounds(y, z, 1.0, None)
@@ -65,7 +67,7 @@ def images(buf: B.BufferFile, ref: np.ndarray, net) -> dict[str, np.ndarray]:
     def clamp(a: torch.Tensor, b: torch.Tensor) -> np.ndarray:
         return torch.minimum(torch.maximum(r, a), b)[0].permute(1, 2, 0).numpy()
 
-    return {"shipped": buffer_envelope(guarded, planes, guard, guide, scale=scale).rgb,
+    return {"shipped": buffer_envelope(guarded, planes, guard, guide, scale=scale, aim=aim).rgb,
             "guide": planes[0, :N_RGB].permute(1, 2, 0).numpy(),
             "oracle range": clamp(lo, hi),
             "oracle terms": clamp(*terms_range(y, z, lo, hi, share)),

@@ -303,7 +303,8 @@ class GuideConfig:
             raise ValueError(f"guide setting 'cascade' must be a factor >= 0 (0 = off), got {self.cascade!r}")
         if self.cascade and (self.source == 0 or self.anchor_source == 1):
             raise ValueError("guide setting 'cascade' steps the aim down from ~z^(anchor_source) to ~z^1 and "
-                             "gives it to OIDN in place of a ~z^j: it needs anchor_source >= 2 and source >= 1")
+                             "gives it to OIDN in place of a ~z^j: it needs anchor_source >= 2 and source >= 1, "
+                             f"got anchor_source {self.anchor_source}, source {self.source}")
 
     def in_mode(self, mode: str) -> "GuideConfig":
         """The same settings in guide mode ``mode``; a learned temperature belongs to Eq. 6's

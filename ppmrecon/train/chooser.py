@@ -39,7 +39,7 @@ from ..metrics import relmse, relmse_blocks, relmse_map
 from ..model.checkpoint import load_checkpoint, model_path, save_checkpoint
 from ..model.chooser import CANDIDATES, FEATURE_NORMAL_X, Chooser, ChooserConfig
 from ..model.guard import guard_buffer
-from ..model.infer import buffer_envelope, buffer_guide_images, chooser_inputs
+from ..model.infer import buffer_aim, buffer_envelope, buffer_guide_images, chooser_inputs
 from .datagen import REFERENCE, load_manifest
 
 Warn = Callable[[str], None]
@@ -127,8 +127,9 @@ def prepare(data: str | os.PathLike, model, warn: Warn | None = None) -> list[It
                 warn(f"{scene['id']}/{entry['file']}: skipped (size differs from the reference)")
                 continue
             guarded = guard_buffer(buf, model.guard)
-            images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True)
-            env = buffer_envelope(guarded, planes, model.guard, guide).rgb
+            aim = buffer_aim(guarded, guide, model.guard)      # once, for the guide and the envelope
+            images, planes = buffer_guide_images(guarded, guide, model.guard, need_y=True, aim=aim)
+            env = buffer_envelope(guarded, planes, model.guard, guide, aim=aim).rgb
             feats, cands, _, _ = chooser_inputs(guarded, env, images, guide=guide, guard=model.guard)
             items.append(Item(f"{scene['id']}/{entry['file']}", scene.get("split", "train"),
                               scene.get("family", "?"), int(entry.get("passes", 0)), feats, cands,
