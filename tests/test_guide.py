@@ -488,20 +488,36 @@ def test_cascade_in_the_envelope_and_the_guide():
         replace(on, source=0)
 
 
+def test_rgb_mean_is_bit_identical_to_mean():
+    """rgb_mean: torch's mean over a dimension of 3, to the bit, on pixel-major (strided)
+    and channels-first memory, with and without keepdim; other channel counts refused."""
+    from ppmrecon.model.guard import rgb_mean
+
+    torch.manual_seed(4)
+    hwc = torch.rand(5, 7, 9, 3) * torch.logspace(-6, 6, 3)         # radiance over 12 decades
+    for x, dim in ((hwc.permute(0, 3, 1, 2)[None], 2), (hwc, -1), (hwc.permute(3, 0, 1, 2).contiguous(), 0)):
+        for keepdim in (False, True):
+            assert torch.equal(rgb_mean(x, dim, keepdim), x.mean(dim, keepdim=keepdim))
+    with pytest.raises(ValueError, match="4 channels"):
+        rgb_mean(torch.zeros(4, 2, 2), 0)
+
+
 def test_window_max_is_the_replicate_padded_max_pool():
     """window_max / window_max(op=min): the extremes over each pixel's K x K window, the
     window cut at the edges, as max_pool2d on a replicate-padded image."""
     from ppmrecon.model.guide import window_max
 
     torch.manual_seed(21)
-    x = torch.randn(2, 4, 3, 9, 11)
-    for size in (3, 5):
-        r = size // 2
-        padded = torch.nn.functional.pad(x.view(2, 12, 9, 11), (r, r, r, r), mode="replicate")
-        pooled = torch.nn.functional.max_pool2d(padded, size, stride=1).view_as(x)
-        assert torch.equal(window_max(x, size=size), pooled)
-        neg = torch.nn.functional.max_pool2d(-padded, size, stride=1).view_as(x)
-        assert torch.equal(window_max(x, torch.minimum, size), -neg)
+    for h, w in ((9, 11), (1, 6), (5, 1), (2, 3)):          # images narrower than the window too
+        x = torch.randn(2, 4, 3, h, w)
+        for size in (1, 3, 5, 7):
+            r = size // 2
+            padded = torch.nn.functional.pad(x.view(2, 12, h, w), (r, r, r, r), mode="replicate")
+            pooled = torch.nn.functional.max_pool2d(padded, size, stride=1).view_as(x)
+            assert torch.equal(window_max(x, size=size), pooled)
+            neg = torch.nn.functional.max_pool2d(-padded, size, stride=1).view_as(x)
+            assert torch.equal(window_max(x, torch.minimum, size), -neg)
+            assert not window_max(x, size=size).data_ptr() == x.data_ptr()   # a new tensor, x untouched
 
 
 def test_terms_range_widens_towards_eq6_terms_by_a_share_capped_at_the_width():

@@ -194,6 +194,17 @@ def local_floor(x: torch.Tensor) -> torch.Tensor:
     return torch.minimum(torch.minimum(rows[0], rows[1]), rows[2])
 
 
+def rgb_mean(x: torch.Tensor, dim: int, keepdim: bool = False) -> torch.Tensor:
+    """``x.mean(dim)`` over a dimension of 3 (R, G, B) as ``(R + G + B) / 3``: the same float32
+    sum in the same order, so bit-identical, and 2.5x faster on the buffer's pixel-major
+    memory (a strided reduction: 6 against 16 ms for 5 x 3 x 1280 x 720)."""
+    if x.shape[dim] != 3:
+        raise ValueError(f"rgb_mean: dimension {dim} has {x.shape[dim]} channels, not 3")
+    r, g, b = x.unbind(dim)
+    out = torch.add(r, g).add_(b).div_(3)        # in place: one image-sized allocation, not three
+    return out.unsqueeze(dim) if keepdim else out
+
+
 def median_of_estimates(lum: torch.Tensor) -> torch.Tensor:
     """Per-pixel median of the five estimates, (B, 5, H, W) -> (B, H, W)."""
     p = list(lum.unbind(1))
@@ -210,7 +221,7 @@ def image_scale(estimates: torch.Tensor) -> torch.Tensor:
     plain mean where that is 0 (a few bright pixels on black), and to 1 for an all-black
     image. Converges to the same statistic of the truth as the inputs converge.
     """
-    return _scale_of(estimates.mean(2))
+    return _scale_of(rgb_mean(estimates, 2))
 
 
 def _scale_of(lum: torch.Tensor) -> torch.Tensor:
@@ -326,7 +337,7 @@ def find_outliers(estimates: torch.Tensor, variances: torch.Tensor, passes: torc
                   cfg: GuardConfig) -> torch.Tensor:
     """The outlier test of the module docstring, (B, 5, H, W) bool."""
     b = estimates.shape[0]
-    lum = estimates.mean(2)
+    lum = rgb_mean(estimates, 2)
     eps = (cfg.floor * _scale_of(lum)).view(b, 1, 1, 1)
     g = cfg.factor(passes).to(lum.dtype).view(b, 1, 1, 1)
     # Per-pixel necessary conditions first (M >= 0); the 3x3 median only where they hold.
@@ -602,23 +613,38 @@ def _gaussian_taps(sigma: float, like: torch.Tensor) -> torch.Tensor:
     return g / g.sum()
 
 
+#: Bytes of padded input per band of rows in :func:`_separable`: a band and its row pass stay
+#: in a core's L2 cache (2 MiB here) through all the taps.
+SEPARABLE_BAND_BYTES = 1 << 20
+
+
 def _separable(x: torch.Tensor, taps: torch.Tensor) -> torch.Tensor:
     """``x`` (B, C, H, W) filtered by ``taps`` along rows and columns, replicate padding.
 
     As sums of shifted copies: a depthwise convolution (one channel per group) of an
     11-13 tap kernel runs about 5x slower on a CPU (100 ms against 18 ms for 3 x 1280 x 720);
-    the two agree to float rounding. Differentiable."""
+    the two agree to float rounding. In bands of output rows, each with the 2r rows of
+    input around it (:data:`SEPARABLE_BAND_BYTES`, at least 8r rows): a band's taps then run
+    in cache, not through memory, about twice as fast for 1280 x 720 (5.6 against 13 ms for
+    3 channels and 11 taps), and every output value is the same sum in the same order as
+    without bands. Differentiable."""
     radius = len(taps) // 2
     h, w = x.shape[-2:]
     weights = [float(t) for t in taps]
     x = F.pad(x, (radius, radius, radius, radius), mode="replicate")
-    rows = x[..., :, 0:w] * weights[0]
-    for k in range(1, len(weights)):
-        rows = rows.add_(x[..., :, k:k + w], alpha=weights[k])
-    out = rows[..., 0:h, :] * weights[0]
-    for k in range(1, len(weights)):
-        out = out.add_(rows[..., k:k + h, :], alpha=weights[k])
-    return out
+    band = max(8 * radius, SEPARABLE_BAND_BYTES // max(1, x[..., :1, :].numel() * x.element_size()))
+    parts = []
+    for r0 in range(0, h, band):
+        n = min(band, h - r0)
+        src = x[..., r0:r0 + n + 2 * radius, :]
+        rows = src[..., :, 0:w] * weights[0]
+        for k in range(1, len(weights)):
+            rows = rows.add_(src[..., :, k:k + w], alpha=weights[k])
+        out = rows[..., 0:n, :] * weights[0]
+        for k in range(1, len(weights)):
+            out = out.add_(rows[..., k:k + n, :], alpha=weights[k])
+        parts.append(out)
+    return parts[0] if len(parts) == 1 else torch.cat(parts, -2)
 
 
 def gaussian_lowpass(x: torch.Tensor, sigma: float) -> torch.Tensor:
