@@ -339,12 +339,22 @@ def combined_variants(models: dict, chosen: str | None) -> dict:
                 sys.exit(f"bench_guide: --variants '{name}': '{key}' is no guide or guard setting")
             base = guide if which == "guide" else guard
             try:
-                cfg = replace(base, **{key: type(getattr(base, key))(value)})
+                cfg = replace(base, **{key: _setting(getattr(base, key), value)})
             except (TypeError, ValueError) as exc:
                 sys.exit(f"bench_guide: --variants '{name}': {exc}")
             guide, guard = (cfg, guard) if which == "guide" else (guide, cfg)
         out[name] = lambda buf, net=net, g=guide, gd=guard: denoise(buf, net, guard=gd, guide=g).rgb
     return out
+
+
+def _setting(current: object, text: str) -> object:
+    """``text`` read as the type of the setting's ``current`` value (true/false/1/0 for a
+    switch: ``bool("0")`` would be True)."""
+    if isinstance(current, bool):
+        if text.lower() not in ("true", "false", "1", "0"):
+            raise ValueError(f"a switch is true or false, got {text!r}")
+        return text.lower() in ("true", "1")
+    return type(current)(text)
 
 
 def _data_settings(data: Path) -> str:
