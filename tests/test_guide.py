@@ -890,10 +890,43 @@ def test_anchor_where_biased_acts_only_beyond_the_anchors_noise():
     assert torch.equal(anchor_where_biased(image, image, torch.ones(1, 1, 20, 20), 1.5, 1.0), image)
     v = lowpass_variance(torch.full((1, 1, 16, 16), 2.0), 1.5)
     assert v.shape == (1, 1, 16, 16)
-    # the 1-D taps squared and summed, squared again for the two axes
+    # inside (beyond the radius of 5 px from every edge): the 1-D taps squared and summed,
+    # squared again for the two axes
     t = torch.exp(-0.5 * (torch.arange(-5, 6, dtype=torch.float32) / 1.5) ** 2)
     t = t / t.sum()
-    np.testing.assert_allclose(v.numpy(), 2.0 * float(t.square().sum()) ** 2, rtol=1e-5)
+    np.testing.assert_allclose(v[..., 5:11, 5:11].numpy(), 2.0 * float(t.square().sum()) ** 2, rtol=1e-5)
+    np.testing.assert_allclose(lowpass_variance(torch.full((1, 1, 16, 16), 2.0), 1.5, exact_edges=False).numpy(),
+                               2.0 * float(t.square().sum()) ** 2, rtol=1e-5)
+
+
+@pytest.mark.parametrize("shape", [(9, 11), (1, 7), (6, 1), (1, 1), (2, 3), (3, 25)])
+@pytest.mark.parametrize("sigma", [0.8, 1.5, 3.0])
+def test_lowpass_variance_is_exact_at_the_edges(shape, sigma):
+    """lowpass_variance is Var(G_sigma * X) for independent pixels, edges and corners
+    included: sum_m a_{c,m}^2 V_m with a the replicate-padded blur's weight on pixel m (built
+    here tap by tap), on images narrower than the blur too. The old form (sum_k g_k^2 V_{c-k})
+    is 2.4x too low at an edge and 6x at a corner for sigma 1.5."""
+    from ppmrecon.model.guard import _gaussian_taps, lowpass_variance
+
+    h, w = shape
+    var = torch.rand(2, 3, h, w, generator=torch.Generator().manual_seed(h * 31 + w), dtype=torch.float64)
+    taps = _gaussian_taps(sigma, var)
+    r = len(taps) // 2
+
+    def weights(n: int) -> torch.Tensor:
+        a = torch.zeros(n, n, dtype=torch.float64)
+        for c in range(n):
+            for k in range(-r, r + 1):
+                a[c, min(max(c + k, 0), n - 1)] += taps[k + r]
+        return a
+
+    expected = torch.einsum("rm,cn,bkmn->bkrc", weights(h).square(), weights(w).square(), var)
+    torch.testing.assert_close(lowpass_variance(var, sigma), expected, rtol=1e-10, atol=1e-12)
+    if shape == (9, 11) and sigma == 1.5:
+        flat = torch.ones(1, 1, 20, 20)
+        ratio = lowpass_variance(flat, 1.5) / lowpass_variance(flat, 1.5, exact_edges=False)
+        assert 5.5 < float(ratio[0, 0, 0, 0]) < 6.5 and 2.2 < float(ratio[0, 0, 10, 0]) < 2.7
+        assert float(ratio[0, 0, 10, 10]) == pytest.approx(1.0)
 
 
 def test_cli_guide_mode(tmp_path):

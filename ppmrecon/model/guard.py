@@ -660,11 +660,63 @@ def anchor_low_frequencies(image: torch.Tensor, anchor: torch.Tensor, sigma: flo
     return image + gaussian_lowpass(anchor - image, sigma)
 
 
-def lowpass_variance(variance: torch.Tensor, sigma: float) -> torch.Tensor:
+def lowpass_variance(variance: torch.Tensor, sigma: float, exact_edges: bool = True) -> torch.Tensor:
     """Variance of ``G_sigma * X`` for pixels with independent errors of variance
-    ``variance`` (B, C, H, W): ``sum_k g_k^2 V_{c-k}``, the same separable Gaussian as
-    :func:`gaussian_lowpass` with squared taps (a lower bound where neighbours share photons)."""
-    return _separable(variance, _gaussian_taps(sigma, variance).square())
+    ``variance`` (B, C, H, W): ``sum_m a_{c,m}^2 V_m`` with a_{c,m} the blur's weight on pixel m,
+    the same separable Gaussian as :func:`gaussian_lowpass` (a lower bound where neighbours
+    share photons). Inside the image a_{c,m} is the tap g_{m-c}; within the blur's radius of an
+    edge the replicate padding gives the edge pixel the sum of every tap that falls outside, and
+    its share of the variance is that sum squared, not the sum of the squares: at an edge the
+    independent-pixel variance is about 2.5x the latter for sigma 1.5 px, at a corner about 6x
+    (``exact_edges``; False: ``sum_k g_k^2 V_{c-k}`` everywhere, the form before 2026-12-06).
+    Separable, so the exact 2-D weights are products of exact 1-D ones: the replicate pass with
+    squared taps plus, near each edge, the excess ``(sum g)^2 - sum g^2`` of the edge pixel
+    (:func:`_edge_excess`) times the blurred edge line."""
+    taps = _gaussian_taps(sigma, variance)
+    out = _separable(variance, taps.square())
+    if not exact_edges:
+        return out
+    h, w = variance.shape[-2:]
+    radius = len(taps) // 2
+    ex_w, ex_h = _edge_excess(taps, w), _edge_excess(taps, h)
+    sq = taps.square()
+    # the excess is 0 beyond the radius: only the strips within it are touched
+    cols = [slice(0, min(w, radius)), slice(max(0, w - radius), w)]
+    rows = [slice(0, min(h, radius)), slice(max(0, h - radius), h)]
+    # rows first: the row pass's excess lives in the edge columns, then goes through the column blur
+    for ex, col, strip in zip(ex_w, (0, w - 1), cols):
+        out[..., :, strip] += _blur_line(variance[..., :, col:col + 1], sq, -2) * ex[strip]
+    # then the column pass's excess at the edge rows, of the exact row pass of those rows
+    for ex, row, strip in zip(ex_h, (0, h - 1), rows):
+        line = _blur_line(variance[..., row:row + 1, :], sq, -1)
+        for ex_c, col in zip(ex_w, (0, w - 1)):
+            line = line + variance[..., row:row + 1, col:col + 1] * ex_c
+        out[..., strip, :] += line * ex[strip, None]
+    return out
+
+
+def _edge_excess(taps: torch.Tensor, n: int) -> list[torch.Tensor]:
+    """Per output position c of a line of n pixels, ``a_{c,e}^2 - b_{c,e}`` for its edge pixels
+    e = 0 and e = n - 1 (one entry where n = 1): a the replicate-padded blur's weight on e (the
+    sum of the taps that land on it), b the same sum of squared taps. (n,) each."""
+    radius = len(taps) // 2
+    k = torch.arange(-radius, radius + 1, device=taps.device)
+    lands = (torch.arange(n, device=taps.device)[:, None] + k).clamp(0, n - 1)       # (n, K): the pixel each tap reads
+    out = []
+    for e in ((0, n - 1) if n > 1 else (0,)):
+        on = (lands == e).to(taps.dtype)
+        out.append((on * taps).sum(1).square() - (on * taps.square()).sum(1))
+    return out
+
+
+def _blur_line(x: torch.Tensor, taps: torch.Tensor, axis: int) -> torch.Tensor:
+    """``x`` (..., H, W) blurred along ``axis`` (-1 or -2) only by ``taps``, replicate padding:
+    for a line of pixels (one row or column), where the banded 2-D blur would be all overhead."""
+    radius = len(taps) // 2
+    n = x.shape[axis]
+    idx = (torch.arange(n, device=x.device)[:, None] + torch.arange(-radius, radius + 1, device=x.device)).clamp(0, n - 1)
+    gathered = x.movedim(axis, -1)[..., idx]                  # (..., n, K)
+    return (gathered * taps).sum(-1).movedim(-1, axis)
 
 
 def noise_correlation(x: torch.Tensor, variance: torch.Tensor, window: float) -> torch.Tensor:
