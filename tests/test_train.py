@@ -300,7 +300,7 @@ def test_scenes_not_generated_yet_are_one_warning_not_one_per_file(tiny_data, tm
 
 #: Every shipped data set, loaded, and the hold-outs' seeds kept apart from them.
 SHIPPED_SETS = ("cpu", "tiny", "v2", "v2_cpu", "holdout", "holdout_n1024", "holdout_s16", "holdout_n1024_s16",
-                "holdout_n1024_s17")
+                "holdout_n1024_s17", "holdout_s18")
 
 
 @pytest.mark.parametrize("name", SHIPPED_SETS)
@@ -331,7 +331,7 @@ def _other_sets_seeds(name: str) -> dict[str, set[int]]:
     return out
 
 
-@pytest.mark.parametrize("name", ["holdout", "holdout_s16"])
+@pytest.mark.parametrize("name", ["holdout", "holdout_s16", "holdout_s18"])
 def test_holdout_config_shares_no_scene_seed_with_a_training_set(name):
     """A hold-out set's scenes (seeds first_seed .. first_seed + scenes - 1) are none of
     the shipped training sets' nor another hold-out's (the first one grown to 32 scenes
