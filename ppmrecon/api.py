@@ -149,7 +149,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_anchor_spikes: float | None = None, guide_y_found: float | None = None,
             guide_z_spike: float | None = None, guide_anchor_free: float | None = None,
             guide_y_empty: float | None = None, guide_redistribute: float | None = None,
-            guide_cascade: float | None = None, tile: int | None = None,
+            guide_cascade: float | None = None, guide_cascade_passes: float | None = None,
+            tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
     """The consistent reconstruction of a render (the guide's envelope, or paper 002 Eq. 6):
@@ -193,7 +194,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     anchor's aim stepped on down to ~z^2 and ~z^1 where the wider estimates' bandwidth bias
     shows beyond this many times the narrower one's noise, the range's wide ends pulled to it
     and OIDN given it in place of ~z^4 (factor k >= 0, 0 = off; None: the model's), as
-    ``--guide-cascade``; ``tile``,
+    ``--guide-cascade``; ``guide_cascade_passes``: renders of fewer passes run without the
+    cascade (0 = every N; None: the model's), as ``--guide-cascade-passes``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -223,7 +225,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,
                                          "y_found": guide_y_found, "z_spike": guide_z_spike,
                                          "anchor_free": guide_anchor_free, "y_empty": guide_y_empty,
-                                         "redistribute": guide_redistribute, "cascade": guide_cascade},
+                                         "redistribute": guide_redistribute, "cascade": guide_cascade,
+                                         "cascade_passes": guide_cascade_passes},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

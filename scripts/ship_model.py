@@ -80,6 +80,8 @@ RESHIP_NUMBERS = (
                              "estimates' bandwidth bias shows beyond K x the narrower one's noise, the range's wide "
                              "ends pulled to it and OIDN given it in place of ~z^4 (GuideConfig.cascade; 0 = off)",
      "guide", "cascade"),
+    ("--guide-cascade-passes", "N", "ship with renders of fewer than N passes run without the cascade "
+                                    "(GuideConfig.cascade_passes; 0 = every N)", "guide", "cascade_passes"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -334,7 +336,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" and on down to ~z^{guide.anchor_source - 1}..~z^1 where that aim's low-pass departs from the "
                f"narrower estimate's by more than {guide.cascade:g} x the latter's noise (a wide kernel's bandwidth "
                "bias beside a bright caustic), the wider ~z^j of the range pulled to that aim by as much and "
-               f"OIDN given it in place of ~z^{guide.source}," if guide.cascade else "")
+               f"OIDN given it in place of ~z^{guide.source}"
+               + (f" (from N = {guide.cascade_passes:g} passes)" if guide.cascade_passes else "") + ","
+               if guide.cascade else "")
             + " where they differ by more than its noise"
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"

@@ -1171,6 +1171,39 @@ def test_cli_and_api_guide_cascade(tmp_path, capsys):
     _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-cascade")
 
 
+def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, capsys):
+    """GuideConfig.cascade_passes M: a render of fewer than M passes is denoised exactly as
+    with the cascade off (no aim is made), one of M or more exactly as with it at every N; the
+    setting is checked; --guide-cascade-passes / guide_cascade_passes= agree and the header
+    says it (``from=M``); negative or not a number: one clear line, exit 2."""
+    from ppmrecon.model.infer import buffer_aim
+
+    z, var, radii = _biased_wide(24, 24)
+    buf = make_buffer(24, 24, seed=33)
+    est = buf.estimates.copy()
+    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
+    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    assert buf.header[B.H_PASSES] == 16
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=4.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    always, never = denoise(buf, model).rgb, denoise(buf, model, guide=replace(on, cascade=0.0)).rgb
+    assert not np.array_equal(always, never)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, cascade_passes=16.0)).rgb, always)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, cascade_passes=17.0)).rgb, never)
+    assert buffer_aim(buf, replace(on, cascade_passes=17.0), DEFAULT_ON) is None
+    assert buffer_aim(buf, replace(on, cascade_passes=16.0), DEFAULT_ON) is not None
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="cascade_passes"):
+            replace(on, cascade_passes=bad)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-cascade", "4"]
+    gated = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade-passes", "32", " cascade=4 from=32",
+                               guide_cascade=4.0, guide_cascade_passes=32.0)
+    ungated = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade-passes", "0", " cascade=4",
+                                 guide_cascade=4.0, guide_cascade_passes=0.0)
+    assert not np.array_equal(gated, ungated)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-cascade-passes")
+
+
 def test_training_refuses_the_envelope_mode(tmp_path):
     """The envelope runs no network: a training config asking for it is one clear error
     (before any data is read)."""

@@ -102,6 +102,9 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "the narrower estimate's by more than K x that one's noise (a wide kernel's bandwidth bias beside a bright "
      "caustic), pull the wider ~z^j of the pixel's range towards it, and give OIDN that aim in place of ~z^4; "
      "0 = off (default: the checkpoint's)"),
+    ("--guide-cascade-passes", "N", "cascade_passes",
+     "envelope modes: run renders of fewer than N passes without the cascade (its noise test rests on a "
+     "sample variance over the passes); 0 = at every N (default: the checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -382,6 +385,8 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" free={guide.anchor_free:g}" if guide.anchor_free and guide.mode in ENVELOPE_MODES else ""
     spike += f" redis={guide.redistribute:g}" if guide.redistribute and guide.mode in ENVELOPE_MODES else ""
     spike += f" cascade={guide.cascade:g}" if guide.cascade and guide.mode in ENVELOPE_MODES else ""
+    spike += (f" from={guide.cascade_passes:g}" if guide.cascade and guide.cascade_passes
+              and guide.mode in ENVELOPE_MODES else "")
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

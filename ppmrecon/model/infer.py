@@ -194,9 +194,12 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
 
 def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim | None:
     """:func:`.guide.cascade_aim` of a whole (guarded) buffer file; None where the guide's
-    cascade is off (or the guard, whose anchor width it takes, is)."""
+    cascade is off (or the guard, whose anchor width it takes, is), or the render has fewer
+    passes than its ``cascade_passes``."""
     if not (guide.cascade and guide.mode in ENVELOPE_MODES and guard.enabled and guard.anchor > 0):
         return None
+    if guide.cascade_passes and passes_of(buf) < guide.cascade_passes:
+        return None                   # too few passes for its variance test (GuideConfig.cascade_passes)
     # channels-first in memory: the per-channel means and steps of the tests run ~15% faster
     # than on the buffer's pixel-major layout, and the pulled ~z^j come out in it
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).contiguous()[None]
