@@ -127,6 +127,35 @@ TERMS_WINDOW = 3
 DENSE_SPIKES = 0.05
 
 
+#: The guide's numeric settings: name -> (valid range, what the one-line error calls a valid
+#: value). The range is ">0" (finite, > 0), ">=0" (finite, >= 0) or "0|>1" (0 = off, or
+#: finite and > 1); :meth:`GuideConfig.__post_init__` checks each, booleans refused.
+_NUMBERS = {
+    "beta": (">0", "a number > 0"),
+    "anchor_noise": (">0", "a number > 0"),
+    "y_weight": (">=0", "a number >= 0"),
+    "y_spike": ("0|>1", "0 (off) or a finite factor > 1"),
+    "anchor_window": (">=0", "a number >= 0"),
+    "anchor_settled": (">=0", "a ratio >= 0 (0 = off)"),
+    "anchor_select": (">=0", "a factor >= 0 (0 = off)"),
+    "terms_passes": (">=0", "a pass count >= 0 (0 = off)"),
+    "anchor_spikes": ("0|>1", "0 (off) or a finite factor > 1"),
+    "z_spike": ("0|>1", "0 (off) or a finite factor > 1"),
+    "anchor_free": (">=0", "a ratio >= 0 (0 = off)"),
+    "redistribute": (">=0", "a width in px >= 0 (0 = off)"),
+    "y_found": (">=0", "a width in px >= 0 (0 = off)"),
+    "y_empty": (">=0", "a width in px >= 0 (0 = off)"),
+    "cascade": (">=0", "a factor >= 0 (0 = off)"),
+    "cascade_passes": (">=0", "a pass count >= 0 (0 = every N)"),
+}
+
+
+def _in_range(value: float, low: str) -> bool:
+    if low == "0|>1":
+        return value == 0 or (math.isfinite(value) and value > 1)
+    return math.isfinite(value) and (value > 0 if low == ">0" else value >= 0)
+
+
 @dataclass(frozen=True)
 class GuideConfig:
     """Denoiser-guide settings; travel inside the checkpoint (``"guide"``)."""
@@ -238,9 +267,10 @@ class GuideConfig:
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
             raise ValueError(f"guide setting 'enabled' must be true or false, got {self.enabled!r}")
-        if isinstance(self.beta, bool) or not isinstance(self.beta, (int, float)) \
-                or not math.isfinite(self.beta) or self.beta <= 0:
-            raise ValueError(f"guide setting 'beta' must be a number > 0, got {self.beta!r}")
+        for name, (low, what) in _NUMBERS.items():
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not _in_range(value, low):
+                raise ValueError(f"guide setting '{name}' must be {what}, got {value!r}")
         if isinstance(self.cross, bool) or not isinstance(self.cross, (int, float)) \
                 or not (self.cross == 0 or self.cross > 1):
             raise ValueError(f"guide setting 'cross' must be 0 (off) or a factor > 1, got {self.cross!r}")
@@ -255,62 +285,10 @@ class GuideConfig:
             raise ValueError(f"guide setting 'mode' must be one of {', '.join(GUIDE_MODES)}, got {self.mode!r}")
         if self.mode in ENVELOPE_MODES and self.temperature:
             raise ValueError(f"guide setting 'temperature' shapes Eq. 6's weights: it has no meaning in '{self.mode}' mode")
-        if isinstance(self.anchor_noise, bool) or not isinstance(self.anchor_noise, (int, float)) \
-                or not math.isfinite(self.anchor_noise) or self.anchor_noise <= 0:
-            raise ValueError(f"guide setting 'anchor_noise' must be a number > 0, got {self.anchor_noise!r}")
         if isinstance(self.anchor_source, bool) or self.anchor_source not in range(1, 5):
             raise ValueError(f"guide setting 'anchor_source' must be a ~z index 1..4, got {self.anchor_source!r}")
-        if isinstance(self.y_weight, bool) or not isinstance(self.y_weight, (int, float)) \
-                or not math.isfinite(self.y_weight) or self.y_weight < 0:
-            raise ValueError(f"guide setting 'y_weight' must be a number >= 0, got {self.y_weight!r}")
-        if isinstance(self.y_spike, bool) or not isinstance(self.y_spike, (int, float)) \
-                or not (self.y_spike == 0 or (math.isfinite(self.y_spike) and self.y_spike > 1)):
-            raise ValueError(f"guide setting 'y_spike' must be 0 (off) or a finite factor > 1, got {self.y_spike!r}")
-        if isinstance(self.anchor_window, bool) or not isinstance(self.anchor_window, (int, float)) \
-                or not math.isfinite(self.anchor_window) or self.anchor_window < 0:
-            raise ValueError(f"guide setting 'anchor_window' must be a number >= 0, got {self.anchor_window!r}")
-        if isinstance(self.anchor_settled, bool) or not isinstance(self.anchor_settled, (int, float)) \
-                or not math.isfinite(self.anchor_settled) or self.anchor_settled < 0:
-            raise ValueError("guide setting 'anchor_settled' must be a ratio >= 0 (0 = off), "
-                             f"got {self.anchor_settled!r}")
-        if isinstance(self.anchor_select, bool) or not isinstance(self.anchor_select, (int, float)) \
-                or not math.isfinite(self.anchor_select) or self.anchor_select < 0:
-            raise ValueError("guide setting 'anchor_select' must be a factor >= 0 (0 = off), "
-                             f"got {self.anchor_select!r}")
-        if isinstance(self.terms_passes, bool) or not isinstance(self.terms_passes, (int, float)) \
-                or not math.isfinite(self.terms_passes) or self.terms_passes < 0:
-            raise ValueError("guide setting 'terms_passes' must be a pass count >= 0 (0 = off), "
-                             f"got {self.terms_passes!r}")
-        if isinstance(self.anchor_spikes, bool) or not isinstance(self.anchor_spikes, (int, float)) \
-                or not (self.anchor_spikes == 0 or (math.isfinite(self.anchor_spikes) and self.anchor_spikes > 1)):
-            raise ValueError("guide setting 'anchor_spikes' must be 0 (off) or a finite factor > 1, "
-                             f"got {self.anchor_spikes!r}")
-        if isinstance(self.z_spike, bool) or not isinstance(self.z_spike, (int, float)) \
-                or not (self.z_spike == 0 or (math.isfinite(self.z_spike) and self.z_spike > 1)):
-            raise ValueError(f"guide setting 'z_spike' must be 0 (off) or a finite factor > 1, got {self.z_spike!r}")
-        if isinstance(self.anchor_free, bool) or not isinstance(self.anchor_free, (int, float)) \
-                or not math.isfinite(self.anchor_free) or self.anchor_free < 0:
-            raise ValueError("guide setting 'anchor_free' must be a ratio >= 0 (0 = off), "
-                             f"got {self.anchor_free!r}")
-        if isinstance(self.redistribute, bool) or not isinstance(self.redistribute, (int, float)) \
-                or not math.isfinite(self.redistribute) or self.redistribute < 0:
-            raise ValueError("guide setting 'redistribute' must be a width in px >= 0 (0 = off), "
-                             f"got {self.redistribute!r}")
-        if isinstance(self.y_found, bool) or not isinstance(self.y_found, (int, float)) \
-                or not math.isfinite(self.y_found) or self.y_found < 0:
-            raise ValueError(f"guide setting 'y_found' must be a width in px >= 0 (0 = off), got {self.y_found!r}")
-        if isinstance(self.y_empty, bool) or not isinstance(self.y_empty, (int, float)) \
-                or not math.isfinite(self.y_empty) or self.y_empty < 0:
-            raise ValueError(f"guide setting 'y_empty' must be a width in px >= 0 (0 = off), got {self.y_empty!r}")
         if isinstance(self.source, bool) or self.source not in range(5):
             raise ValueError(f"guide setting 'source' must be an estimate index 0..4, got {self.source!r}")
-        if isinstance(self.cascade, bool) or not isinstance(self.cascade, (int, float)) \
-                or not math.isfinite(self.cascade) or self.cascade < 0:
-            raise ValueError(f"guide setting 'cascade' must be a factor >= 0 (0 = off), got {self.cascade!r}")
-        if isinstance(self.cascade_passes, bool) or not isinstance(self.cascade_passes, (int, float)) \
-                or not math.isfinite(self.cascade_passes) or self.cascade_passes < 0:
-            raise ValueError("guide setting 'cascade_passes' must be a pass count >= 0 (0 = every N), "
-                             f"got {self.cascade_passes!r}")
         if self.cascade and (self.source == 0 or self.anchor_source == 1):
             raise ValueError("guide setting 'cascade' steps the aim down from ~z^(anchor_source) to ~z^1 and "
                              "gives it to OIDN in place of a ~z^j: it needs anchor_source >= 2 and source >= 1, "
