@@ -422,6 +422,16 @@ def _biased_wide(h: int = 16, w: int = 16) -> tuple[torch.Tensor, torch.Tensor, 
     return z, var, radii
 
 
+def _biased_buffer(seed: int) -> B.BufferFile:
+    """A 24 x 24 buffer file whose ~z^j are :func:`_biased_wide`'s (with its variances and
+    radii); ~y as :func:`make_buffer` drew it."""
+    z, var, radii = _biased_wide(24, 24)
+    buf = make_buffer(24, 24, seed=seed)
+    est = buf.estimates.copy()
+    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
+    return replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+
+
 def test_cascade_aim_steps_down_where_the_wide_estimates_are_biased():
     """cascade: where ~z^3/~z^4 depart from ~z^2/~z^1 far beyond their noise the aim is the
     narrow estimates' level and the wide ~z^j are pulled to it; where all agree (or the gap is
@@ -463,12 +473,10 @@ def test_cascade_in_the_envelope_and_the_guide():
     returned exactly; the setting is checked and refuses what it cannot step from."""
     from ppmrecon.model.infer import buffer_aim
 
-    z, var, radii = _biased_wide(24, 24)
-    buf = make_buffer(24, 24, seed=31)
-    est = np.empty((5, 24, 24, 3), np.float32)
+    buf = _biased_buffer(31)
+    est = buf.estimates.copy()
     est[0] = 1.0
-    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
-    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    buf = replace(buf, estimates=est)
     on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=4.0)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
     cascaded = denoise(buf, model).rgb
@@ -1159,11 +1167,7 @@ def test_cli_and_api_guide_redistribute(tmp_path, capsys):
 def test_cli_and_api_guide_cascade(tmp_path, capsys):
     """--guide-cascade / guide_cascade= (the header says it; CLI and API agree; 0 turns it
     off); negative or not a number: one clear line, exit 2, no output."""
-    z, var, radii = _biased_wide(24, 24)
-    buf = make_buffer(24, 24, seed=27)
-    est = buf.estimates.copy()
-    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
-    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    buf = _biased_buffer(27)
     args = _envelope_cli(tmp_path, buf)
     on = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "4", " cascade=4", guide_cascade=4.0)
     off = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "0", "y=0", guide_cascade=0.0)
@@ -1178,11 +1182,7 @@ def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, ca
     says it (``from=M``); negative or not a number: one clear line, exit 2."""
     from ppmrecon.model.infer import buffer_aim
 
-    z, var, radii = _biased_wide(24, 24)
-    buf = make_buffer(24, 24, seed=33)
-    est = buf.estimates.copy()
-    est[1:] = z[0].permute(0, 2, 3, 1).numpy()
-    buf = replace(buf, estimates=est, variances=var[0].numpy(), radii=radii[0].numpy())
+    buf = _biased_buffer(33)
     assert buf.header[B.H_PASSES] == 16
     on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=4.0)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
