@@ -660,7 +660,7 @@ def anchor_low_frequencies(image: torch.Tensor, anchor: torch.Tensor, sigma: flo
     return image + gaussian_lowpass(anchor - image, sigma)
 
 
-def lowpass_variance(variance: torch.Tensor, sigma: float, exact_edges: bool = True) -> torch.Tensor:
+def lowpass_variance(variance: torch.Tensor, sigma: float) -> torch.Tensor:
     """Variance of ``G_sigma * X`` for pixels with independent errors of variance
     ``variance`` (B, C, H, W): ``sum_m a_{c,m}^2 V_m`` with a_{c,m} the blur's weight on pixel m,
     the same separable Gaussian as :func:`gaussian_lowpass` (a lower bound where neighbours
@@ -668,14 +668,12 @@ def lowpass_variance(variance: torch.Tensor, sigma: float, exact_edges: bool = T
     edge the replicate padding gives the edge pixel the sum of every tap that falls outside, and
     its share of the variance is that sum squared, not the sum of the squares: at an edge the
     independent-pixel variance is about 2.5x the latter for sigma 1.5 px, at a corner about 6x
-    (``exact_edges``; False: ``sum_k g_k^2 V_{c-k}`` everywhere, the form before 2026-12-06).
+    (``sum_k g_k^2 V_{c-k}`` everywhere was the form before 2026-12-06).
     Separable, so the exact 2-D weights are products of exact 1-D ones: the replicate pass with
     squared taps plus, near each edge, the excess ``(sum g)^2 - sum g^2`` of the edge pixel
     (:func:`_edge_excess`) times the blurred edge line."""
     taps = _gaussian_taps(sigma, variance)
     out = _separable(variance, taps.square())
-    if not exact_edges:
-        return out
     h, w = variance.shape[-2:]
     radius = len(taps) // 2
     ex_w, ex_h = _edge_excess(taps, w), _edge_excess(taps, h)
