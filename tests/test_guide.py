@@ -991,6 +991,20 @@ def _refuses_negative_and_nan(tmp_path, capsys, buf, args: list[str], flag: str)
         ppmrecon.denoise(buf, tmp_path / "m.pt", **{keyword: -0.5})
 
 
+def _switch_agrees_and_refuses(tmp_path, capsys, buf, args: list[str], flag: str, on: str, on_header: str,
+                               off_header: str = "y=0", **fixed) -> tuple[np.ndarray, np.ndarray]:
+    """A guide setting's flag at ``on`` and at 0: CLI and API agree each time (its keyword
+    ``flag`` read as snake case, with ``fixed`` keywords too), the two images differ, and
+    negative or not-a-number values are refused (:func:`_refuses_negative_and_nan`); the two
+    images."""
+    keyword = flag[2:].replace("-", "_")
+    image_on = _cli_and_api_agree(tmp_path, buf, args, flag, on, on_header, **fixed, **{keyword: float(on)})
+    image_off = _cli_and_api_agree(tmp_path, buf, args, flag, "0", off_header, **fixed, **{keyword: 0.0})
+    assert not np.array_equal(image_on, image_off)
+    _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
+    return image_on, image_off
+
+
 def test_cli_and_api_guide_y_weight(tmp_path, capsys):
     """--guide-y-weight / guide_y_weight= set the weight of OIDN's image of ~y in the guide
     (the header says it); negative or not a number, or with the guide off: one clear line, exit 2."""
@@ -1055,11 +1069,7 @@ def test_cli_and_api_guide_anchor_select(tmp_path, capsys):
     line, exit 2, no output."""
     buf = make_buffer(24, 24, seed=17)
     args = _envelope_cli(tmp_path, buf)
-    aimed = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "4", " select=4",
-                               guide_anchor_select=4.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-select", "0", "y=0", guide_anchor_select=0.0)
-    assert not np.array_equal(aimed, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-select")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-anchor-select", "4", " select=4")
 
 
 def test_cli_and_api_guide_terms_passes(tmp_path, capsys):
@@ -1069,10 +1079,7 @@ def test_cli_and_api_guide_terms_passes(tmp_path, capsys):
     buf = make_buffer(24, 24, seed=18)
     buf = replace(buf, header=dict(buf.header, **{B.H_PASSES: 4}))
     args = _envelope_cli(tmp_path, buf)
-    wide = _cli_and_api_agree(tmp_path, buf, args, "--guide-terms-passes", "16", " terms=16", guide_terms_passes=16.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-terms-passes", "0", "y=0", guide_terms_passes=0.0)
-    assert not np.array_equal(wide, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-terms-passes")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-terms-passes", "16", " terms=16")
 
 
 def test_cli_and_api_guide_anchor_spikes(tmp_path, capsys):
@@ -1083,10 +1090,7 @@ def test_cli_and_api_guide_anchor_spikes(tmp_path, capsys):
     est[0, 12, 12], est[1:, 12, 12] = 5e2, 2e3               # a small light seen from both hit points
     buf = replace(buf, estimates=est)
     args = _envelope_cli(tmp_path, buf)
-    kept = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-spikes", "8", " spikes=8", guide_anchor_spikes=8.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-spikes", "0", "y=0", guide_anchor_spikes=0.0)
-    assert not np.array_equal(kept, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-spikes")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-anchor-spikes", "8", " spikes=8")
     assert denoise_main(args + ["--guide-anchor-spikes", "1", "-o", str(tmp_path / "x.exr")]) == 2
     assert "--guide-anchor-spikes" in capsys.readouterr().err
 
@@ -1096,16 +1100,13 @@ def test_cli_and_api_guide_y_found_and_y_empty(tmp_path, capsys, name, header):
     """--guide-y-found / guide_y_found= and --guide-y-empty / guide_y_empty= (the header says
     it; CLI and API agree; 0 turns it off); negative or not a number: one clear line, exit 2,
     no output."""
-    flag, keyword = "--guide-" + name.replace("_", "-"), "guide_" + name
+    flag = "--guide-" + name.replace("_", "-")
     buf = make_buffer(24, 24, seed=23)
     est, var = buf.estimates.copy(), buf.variances.copy()
     est[0, :, :12], var[0, :, :12] = 0.0, 0.0                # ~y caught no photon on the left
     buf = replace(buf, estimates=est, variances=var)
     args = _envelope_cli(tmp_path, buf) + ["--guide-y-weight", "2"]
-    on = _cli_and_api_agree(tmp_path, buf, args, flag, "4", f" {header}=4", guide_y_weight=2.0, **{keyword: 4.0})
-    plain = _cli_and_api_agree(tmp_path, buf, args, flag, "0", "y=2", guide_y_weight=2.0, **{keyword: 0.0})
-    assert not np.array_equal(on, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, flag, "4", f" {header}=4", "y=2", guide_y_weight=2.0)
 
 
 def test_cli_and_api_guide_z_spike(tmp_path, capsys):
@@ -1116,11 +1117,8 @@ def test_cli_and_api_guide_z_spike(tmp_path, capsys):
     est[1:, 12, 12], var[1:, 12, 12] = 3e3, 9e6            # one event at hit point B
     buf = replace(buf, estimates=est, variances=var, header=dict(buf.header, **{B.H_PASSES: 1 << 20}))
     args = _envelope_cli(tmp_path, buf)
-    held = _cli_and_api_agree(tmp_path, buf, args, "--guide-z-spike", "8", " zspike=8", guide_z_spike=8.0)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-z-spike", "0", "y=0", guide_z_spike=0.0)
-    assert not np.array_equal(held, plain)
+    held, _ = _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-z-spike", "8", " zspike=8")
     np.testing.assert_allclose(held[12, 12], est[0, 12, 12], rtol=1e-6)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-z-spike")
     assert denoise_main(args + ["--guide-z-spike", "1", "-o", str(tmp_path / "x.exr")]) == 2
     assert "--guide-z-spike" in capsys.readouterr().err
 
@@ -1136,10 +1134,7 @@ def test_cli_and_api_guide_anchor_free(tmp_path, capsys):
     var[:, :, :12] = (speck * 100.0)[None]
     buf = replace(buf, estimates=est, variances=var)
     args = _envelope_cli(tmp_path, buf)
-    free = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-free", "0.5", " free=0.5", guide_anchor_free=0.5)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-anchor-free", "0", "y=0", guide_anchor_free=0.0)
-    assert not np.array_equal(free, plain)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-anchor-free")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-anchor-free", "0.5", " free=0.5")
 
 
 def test_cli_and_api_guide_redistribute(tmp_path, capsys):
@@ -1154,13 +1149,9 @@ def test_cli_and_api_guide_redistribute(tmp_path, capsys):
     var[:] = speck * 100.0
     buf = replace(buf, estimates=est, variances=var)
     args = _envelope_cli(tmp_path, buf)
-    given = _cli_and_api_agree(tmp_path, buf, args, "--guide-redistribute", "1.5", " redis=1.5",
-                               guide_redistribute=1.5)
-    plain = _cli_and_api_agree(tmp_path, buf, args, "--guide-redistribute", "0", "y=0", guide_redistribute=0.0)
-    assert not np.array_equal(given, plain)
+    given, plain = _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-redistribute", "1.5", " redis=1.5")
     assert given.mean() >= plain.mean()
     assert (given <= est.max(0) + 1e-6).all() and (given >= 0).all()
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-redistribute")
 
 
 def test_cli_and_api_guide_cascade(tmp_path, capsys):
@@ -1168,10 +1159,7 @@ def test_cli_and_api_guide_cascade(tmp_path, capsys):
     off); negative or not a number: one clear line, exit 2, no output."""
     buf = _biased_buffer(27)
     args = _envelope_cli(tmp_path, buf)
-    on = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "4", " cascade=4", guide_cascade=4.0)
-    off = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade", "0", "y=0", guide_cascade=0.0)
-    assert not np.array_equal(on, off)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-cascade")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-cascade", "4", " cascade=4")
 
 
 def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, capsys):
@@ -1195,12 +1183,8 @@ def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, ca
         with pytest.raises(ValueError, match="cascade_passes"):
             replace(on, cascade_passes=bad)
     args = _envelope_cli(tmp_path, buf) + ["--guide-cascade", "4"]
-    gated = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade-passes", "32", " cascade=4 from=32",
-                               guide_cascade=4.0, guide_cascade_passes=32.0)
-    ungated = _cli_and_api_agree(tmp_path, buf, args, "--guide-cascade-passes", "0", " cascade=4",
-                                 guide_cascade=4.0, guide_cascade_passes=0.0)
-    assert not np.array_equal(gated, ungated)
-    _refuses_negative_and_nan(tmp_path, capsys, buf, args, "--guide-cascade-passes")
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-cascade-passes", "32", " cascade=4 from=32",
+                               " cascade=4", guide_cascade=4.0)
 
 
 def test_training_refuses_the_envelope_mode(tmp_path):
