@@ -82,6 +82,9 @@ RESHIP_NUMBERS = (
      "guide", "cascade"),
     ("--guide-cascade-passes", "N", "ship with renders of fewer than N passes run without the cascade "
                                     "(GuideConfig.cascade_passes; 0 = every N)", "guide", "cascade_passes"),
+    ("--guide-cascade-y", "K", "ship with the cascade's aim taken one step further, to ~y, where their "
+                               "low-passes differ by more than K x ~y's noise and ~z^1 departs the same way "
+                               "(GuideConfig.cascade_y; 0 = off)", "guide", "cascade_y"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "

@@ -467,6 +467,48 @@ def test_cascade_aim_steps_down_where_the_wide_estimates_are_biased():
     assert torch.equal(converged.t, same[:, 0]) and torch.equal(converged.z, same)
 
 
+def _trend(h: int = 16, w: int = 16) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """y (1, 3, H, W) at 1 and :func:`_biased_wide`'s ~z^j with a bandwidth trend on the right
+    half (~z^1 1.5, ~z^2 2, ~z^3 and ~z^4 3: every kernel gathers a bright neighbour's photons,
+    the wider the more), its variances and radii."""
+    z, var, radii = _biased_wide(h, w)
+    z[:, 0, :, :, w // 2:] = 1.5
+    z[:, 1, :, :, w // 2:] = 2.0
+    return torch.ones(1, 3, h, w), z, var, radii
+
+
+def test_y_step_takes_the_aim_to_y_where_the_z_trend_shows():
+    """cascade_y: where ~z^1 departs from the wide estimates beyond its noise and ~y lies
+    further the same way, the aim steps on to ~y (the range's ~z^j are not pulled by it);
+    a ~y on the far side of the wide estimates, a ~y departing from ~z^j that agree among
+    themselves, or a speckle field: no step; a ~y of variance 0 is not taken as certain (the
+    ~z^j's prediction of its variance floors the test); off: the aim of the ~z^j alone."""
+    from ppmrecon.model.guide import cascade_aim
+
+    y, z, var, radii = _trend()
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, cascade=4.0, anchor_window=3.0, cascade_y=4.0)
+    off = replace(on, cascade_y=0.0)
+    stepped, plain = cascade_aim(z, var, radii, on, 1.5, None, y), cascade_aim(z, var, radii, off, 1.5, None)
+    assert torch.allclose(plain.t[..., 13:], torch.full((1, 3, 16, 3), 1.5), rtol=0, atol=6e-2)   # ~z^1's level
+    assert torch.allclose(stepped.t[..., 13:], torch.ones(1, 3, 16, 3), rtol=0, atol=5e-2)
+    assert torch.equal(stepped.z, plain.z)                         # the step pulls no ~z^j
+    assert torch.equal(stepped.t[..., :4], plain.t[..., :4])       # no trend on the left: no step
+    assert bool(((stepped.t >= 1.0 - 1e-6) & (stepped.t <= 3.0)).all())    # convex combinations
+    far = torch.where(torch.arange(16) >= 8, 3.5, 1.0).expand(1, 3, 16, 16)     # beyond ~z^4
+    assert torch.equal(cascade_aim(z, var, radii, on, 1.5, None, far).t, plain.t)
+    flat = torch.ones_like(z)                                      # the ~z^j agree; ~y alone departs
+    assert torch.equal(cascade_aim(flat, var, radii, on, 1.5, None, 0.5 * y).t,
+                       cascade_aim(flat, var, radii, off, 1.5, None).t)
+    free = torch.ones(1, 1, 16, 16, dtype=torch.bool)
+    assert torch.equal(cascade_aim(z, var, radii, on, 1.5, free, y).t, cascade_aim(z, var, radii, off, 1.5, free).t)
+    starved = var.clone()
+    starved[:, 0] = 0.0
+    near = torch.where(torch.arange(16) >= 8, 1.49, 1.0).expand(1, 3, 16, 16)   # 0.01 below ~z^1
+    assert bool((cascade_aim(z, starved, radii, on, 1.5, None, near).t[..., 13:] > 1.495).all())
+    with pytest.raises(ValueError, match="needs ~y"):
+        cascade_aim(z, var, radii, on, 1.5, None)
+
+
 def test_cascade_in_the_envelope_and_the_guide():
     """The envelope with the cascade on holds the biased wide ends out of the range and the
     anchor at the narrow level (the image near 1, not 3, on the right); converged inputs are
@@ -1160,6 +1202,22 @@ def test_cli_and_api_guide_cascade(tmp_path, capsys):
     buf = _biased_buffer(27)
     args = _envelope_cli(tmp_path, buf)
     _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-cascade", "4", " cascade=4")
+
+
+def test_cli_and_api_guide_cascade_y(tmp_path, capsys):
+    """--guide-cascade-y / guide_cascade_y= (the header says it after the cascade's; CLI and
+    API agree; 0 turns it off; without the cascade it is inert); negative or not a number:
+    one clear line, exit 2, no output."""
+    buf = _biased_buffer(29)
+    est = buf.estimates.copy()
+    est[0] = 0.5                      # ~y below ~z^1 and ~z^2 (1), which lie below ~z^3 / ~z^4 (3) on the right
+    buf = replace(buf, estimates=est)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-cascade", "4"]
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-cascade-y", "4", " cascade=4 ystep=4",
+                               " cascade=4", guide_cascade=4.0)
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=0.0, cascade_y=4.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    np.testing.assert_array_equal(denoise(buf, model).rgb, denoise(buf, model, guide=replace(on, cascade_y=0.0)).rgb)
 
 
 def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, capsys):

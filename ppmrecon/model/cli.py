@@ -105,6 +105,11 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-cascade-passes", "N", "cascade_passes",
      "envelope modes: run renders of fewer than N passes without the cascade (its noise test rests on a "
      "sample variance over the passes); 0 = at every N (default: the checkpoint's)"),
+    ("--guide-cascade-y", "K", "cascade_y",
+     "envelope modes, with the cascade: take its aim one step further, to ~y (hit point A, the narrowest "
+     "kernel), where their low-passes differ by more than K x ~y's noise and ~z^1 departs from the wide "
+     "estimates the same way (beside a bright caustic even ~z^1 gathers its photons); 0 = off (default: the "
+     "checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -387,6 +392,7 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" cascade={guide.cascade:g}" if guide.cascade and guide.mode in ENVELOPE_MODES else ""
     spike += (f" from={guide.cascade_passes:g}" if guide.cascade and guide.cascade_passes
               and guide.mode in ENVELOPE_MODES else "")
+    spike += f" ystep={guide.cascade_y:g}" if guide.cascade and guide.cascade_y and guide.mode in ENVELOPE_MODES else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

@@ -147,6 +147,7 @@ _NUMBERS = {
     "y_empty": (">=0", "a width in px >= 0 (0 = off)"),
     "cascade": (">=0", "a factor >= 0 (0 = off)"),
     "cascade_passes": (">=0", "a pass count >= 0 (0 = every N)"),
+    "cascade_y": (">=0", "a factor >= 0 (0 = off)"),
 }
 
 
@@ -263,6 +264,14 @@ class GuideConfig:
     #: freedom: a block of narrow estimates lifted in a few passes reads a small variance, and
     #: the steps follow it (``holdout_s18`` ``0010_indirect`` N = 4: 0.81 -> 1.06 of the best input)
     cascade_passes: float = 0.0
+    #: with ``cascade`` (inert without it, so that turning the cascade off needs one setting):
+    #: > 0 takes the aim one step further, to ~y (hit point A), wherever its low-pass departs
+    #: from ~y's by more than this k times ~y's noise and ~z^1 departs from the wide estimates
+    #: the same way; the ~z^j of the range are not pulled by this step (:func:`y_step`). Beside
+    #: a bright caustic even ~z^1 gathers its photons: ``0001_caustic_paths`` of
+    #: ``holdout_n1024_s16`` N = 64, pixel (52, 75): ~y 7.5, ~z^1..~z^4 14 / 22 / 37 / 62,
+    #: reference 4.2; 0 = off (checkpoints without it read as 0)
+    cascade_y: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -586,7 +595,7 @@ class Aim(NamedTuple):
 
 
 def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, cfg: GuideConfig, sigma: float,
-                free: torch.Tensor | None) -> Aim:
+                free: torch.Tensor | None, y: torch.Tensor | None = None) -> Aim:
     """The anchor aim stepped on down to the narrower ~z^j (``cfg.cascade`` k), per pixel:
 
         t, V_t = :func:`anchor_target` (~z^m or between ~z^m and ~z^(m+1)),  m = ``cfg.anchor_source``
@@ -594,6 +603,8 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
             D = G_sigma * (t - ~z^j),   w_j = max(0, |D|^2 - k Var(G_sigma * ~z^j)) / |D|^2
             t = t + w_j (~z^j - t),    V_t = V_t + w_j (V_j - V_t)
         ~z^i' = ~z^i + p_i (t - ~z^i),  p_i = 1 - prod_{j < i} (1 - w_j)
+        with ``cfg.cascade_y``, one more step, to ~y (y (B, 3, H, W)), no ~z^j pulled by it:
+        t = t + w_y (~y - t),  V_t = V_t + w_y (V_y - V_t),  w_y from :func:`y_step`
 
     z (B, 4, 3, H, W), ``variances`` and ``radii`` (B, 5, H, W) in schema order, ``free`` the
     speckle field (:func:`speckle_field`, w = 0 there: the guard's thinning makes a narrow
@@ -616,6 +627,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
     m, k = cfg.anchor_source, cfg.cascade
     t, vt = anchor_target(z, variances[:, m:m + 1], variances[:, m + 1:m + 2] if m < z.shape[1] else None,
                           cfg, sigma)
+    t0 = t                                                # the wide estimates' aim, for y_step
     tiny = torch.finfo(z.dtype).tiny
     pulled = torch.zeros_like(z[:, :, :1])
     energy = variances.clamp(min=0.0) * radii.square()   # V_i r_i^2: V_i (r_i / r_j)^2 = V_i r_i^2 / r_j^2
@@ -632,7 +644,65 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
             w = torch.where(free, torch.zeros_like(w), w)
         t, vt = torch.lerp(t, z[:, j - 1], w), torch.lerp(vt, vj, w)
         pulled[:, j:] = 1.0 - (1.0 - pulled[:, j:]) * (1.0 - w[:, None])
+    if cfg.cascade_y:
+        if y is None:
+            raise ValueError("cascade_aim: the guide's cascade_y needs ~y")
+        w = y_step(t0, t, y, z, variances, radii, cfg, sigma, free)
+        return Aim(torch.lerp(t, y, w), torch.lerp(vt, variances[:, :1].clamp(min=0.0), w),
+                   torch.lerp(z, t[:, None], pulled), free)
     return Aim(t, vt, torch.lerp(z, t[:, None], pulled), free)
+
+
+#: :func:`y_step`: ~y's test variance is at least this share of what the ~z^j predict for it.
+Y_NULL_SHARE = 0.25
+
+
+def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor,
+           radii: torch.Tensor, cfg: GuideConfig, sigma: float, free: torch.Tensor | None) -> torch.Tensor:
+    """The weight w_y (B, 1, H, W) of :func:`cascade_aim`'s last step, from its aim t to ~y
+    (hit point A, the narrowest kernel r_0), k = ``cfg.cascade_y``:
+
+        D = G_sigma * (t - ~y),    w_y = max(0, |D|^2 - k Var(G_sigma * ~y)) / |D|^2
+        Var from V_y' = max(sqrt(V_y max(V_y, V_0)), V_0 / 4),  V_0 = L_t max_i (V_i r_i^2 / L_i) / r_0^2
+
+    and w_y = 0 unless the ~z^j show the same trend: G_sigma * (t_0 - ~z^1), t_0 the aim of
+    the wide estimates (:func:`anchor_target`), departs from 0 by more than k times ~z^1's
+    noise, with the sign of G_sigma * (t_0 - ~y) (RGB means); 0 in the speckle field ``free``.
+    V_0 is the variance the ~z^j predict for ~y were its mean the aim's level L_t (a photon
+    estimate's variance of the mean is its level times the energy per event over its kernel
+    area, V_i r_i^2 / L_i for ~z^i, L the RGB mean): a ~y whose passes missed photons reads
+    both low and a low sample variance (0 where it caught none), and its own variance alone
+    would have the step favour it (the glossy ``cornell-box-spotlight`` N = 256: 8x8-block
+    relMSE 1.03 -> 1.44 of its best input). The trend test keeps a ~y that departs from
+    estimates that agree among themselves (noise in ~y alone) from being taken.
+    Why: beside a bright caustic even ~z^1 gathers its photons (``0001_caustic_paths`` of
+    ``holdout_n1024_s16`` N = 64, pixel (52, 75): ~y 7.5, ~z^1..~z^4 14 / 22 / 37 / 62,
+    reference 4.2; the output was 44). Measured in docs/RECONSTRUCTION_LOG.md (nineteenth
+    session). Consistent: the step's aim is a convex combination of estimates that converge."""
+    from .guard import correlated_lowpass_variance, gaussian_lowpass, noise_correlation
+
+    tiny = torch.finfo(z.dtype).tiny
+    k = cfg.cascade_y
+    vy = variances[:, :1].clamp(min=0.0)
+    level = rgb_mean(z, 2)                                       # (B, 4, H, W)
+    per_event = torch.where(level > 0, variances[:, 1:].clamp(min=0.0) * radii[:, 1:].square()
+                            / level.clamp(min=tiny), torch.zeros_like(level)).amax(1, keepdim=True)
+    r02 = radii[:, :1].square()
+    null = torch.where(r02 > 0, per_event * t.mean(1, keepdim=True).clamp(min=0.0) / r02.clamp(min=tiny),
+                       torch.zeros_like(vy))
+    vy_test = torch.maximum(torch.sqrt(vy * torch.maximum(vy, null)), Y_NULL_SHARE * null)
+    noise = correlated_lowpass_variance(vy_test, noise_correlation(y, vy_test, cfg.anchor_window), sigma)
+    d2 = gaussian_lowpass(t - y, sigma).square().mean(1, keepdim=True)
+    w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
+    # the ~z^j's own trend: ~z^1 departs from t_0 beyond its noise, on ~y's side
+    v1 = variances[:, 1:2].clamp(min=0.0)
+    narrow = gaussian_lowpass(t0 - z[:, 0], sigma)
+    trend = narrow.square().mean(1, keepdim=True) > k * correlated_lowpass_variance(
+        v1, noise_correlation(z[:, 0], v1, cfg.anchor_window), sigma)
+    trend &= gaussian_lowpass(t0 - y, sigma).mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0
+    if free is not None:
+        trend &= ~free
+    return torch.where(trend, w, torch.zeros_like(w))
 
 
 def aim_spikes(target: torch.Tensor, eps: torch.Tensor | float, ratio: float) -> torch.Tensor:

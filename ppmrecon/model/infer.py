@@ -207,7 +207,7 @@ def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim |
     radii = torch.from_numpy(np.ascontiguousarray(buf.radii, np.float32))[None]
     y, z = est[:, 0], est[:, 1:]
     with torch.no_grad():
-        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free))
+        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free), y)
 
 
 def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig, scale: float | None = None,
