@@ -667,7 +667,8 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
 
     and w_y = 0 unless the ~z^j show the same trend: G_sigma * (t_0 - ~z^1), t_0 the aim of
     the wide estimates (:func:`anchor_target`), departs from 0 by more than k times ~z^1's
-    noise, with the sign of G_sigma * (t_0 - ~y) (RGB means); 0 in the speckle field ``free``.
+    noise, with the sign of D (RGB means: ~y lies on ~z^1's side of t); 0 in the speckle
+    field ``free``.
     V_0 is the variance the ~z^j predict for ~y were its mean the aim's level L_t (a photon
     estimate's variance of the mean is its level times the energy per event over its kernel
     area, V_i r_i^2 / L_i for ~z^i, L the RGB mean): a ~y whose passes missed photons reads
@@ -683,6 +684,15 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
 
     tiny = torch.finfo(z.dtype).tiny
     k = cfg.cascade_y
+    # the ~z^j's own trend first: ~z^1 departs from t_0 beyond its noise (most pixels do not)
+    v1 = variances[:, 1:2].clamp(min=0.0)
+    narrow = gaussian_lowpass(t0 - z[:, 0], sigma)
+    trend = narrow.square().mean(1, keepdim=True) > k * correlated_lowpass_variance(
+        v1, noise_correlation(z[:, 0], v1, cfg.anchor_window), sigma)
+    if free is not None:
+        trend &= ~free
+    if not bool(trend.any()):
+        return torch.zeros_like(trend, dtype=z.dtype)
     vy = variances[:, :1].clamp(min=0.0)
     level = rgb_mean(z, 2)                                       # (B, 4, H, W)
     per_event = torch.where(level > 0, variances[:, 1:].clamp(min=0.0) * radii[:, 1:].square()
@@ -692,16 +702,10 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
                        torch.zeros_like(vy))
     vy_test = torch.maximum(torch.sqrt(vy * torch.maximum(vy, null)), Y_NULL_SHARE * null)
     noise = correlated_lowpass_variance(vy_test, noise_correlation(y, vy_test, cfg.anchor_window), sigma)
-    d2 = gaussian_lowpass(t - y, sigma).square().mean(1, keepdim=True)
+    gap = gaussian_lowpass(t - y, sigma)
+    d2 = gap.square().mean(1, keepdim=True)
     w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
-    # the ~z^j's own trend: ~z^1 departs from t_0 beyond its noise, on ~y's side
-    v1 = variances[:, 1:2].clamp(min=0.0)
-    narrow = gaussian_lowpass(t0 - z[:, 0], sigma)
-    trend = narrow.square().mean(1, keepdim=True) > k * correlated_lowpass_variance(
-        v1, noise_correlation(z[:, 0], v1, cfg.anchor_window), sigma)
-    trend &= gaussian_lowpass(t0 - y, sigma).mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0
-    if free is not None:
-        trend &= ~free
+    trend &= gap.mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0     # ~y on ~z^1's side of t
     return torch.where(trend, w, torch.zeros_like(w))
 
 
