@@ -62,7 +62,9 @@ relMSE 3-12% lower on every set; docs/RECONSTRUCTION_LOG.md, eighth session).
 anchor's aim steps on down to ~z^2 and ~z^1 wherever its low-pass departs from the narrower
 estimate's by more than k times that one's noise, the range's wider ~z^j are pulled to the
 final aim, and OIDN denoises that aim in place of ~z^4: beside a bright caustic the wide kernels
-gather its photons, and the guide, the range and the anchor otherwise all follow them.
+gather its photons, and the guide, the range and the anchor otherwise all follow them. With
+``cascade_y`` (shipped at 4) the aim takes one more step, to ~y, where ~z^1 itself shows the
+trend (:func:`y_step`): on a caustic's rim even ~z^1 carries its photons.
 
 **Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
 envelope and seven other images held in the same range, mixed per pixel by a small trained
