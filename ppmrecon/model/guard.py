@@ -757,6 +757,13 @@ def correlated_lowpass_variance(variance: torch.Tensor, rho: torch.Tensor, sigma
     return torch.maximum(shared, lowpass_variance(variance, sigma))
 
 
+def estimated_lowpass_variance(x: torch.Tensor, variance: torch.Tensor, window: float, sigma: float) -> torch.Tensor:
+    """:func:`correlated_lowpass_variance` of ``x``'s noise (variance (B, 1, H, W)), its
+    neighbour correlation estimated from ``x`` over a Gaussian of ``window`` px
+    (:func:`noise_correlation`)."""
+    return correlated_lowpass_variance(variance, noise_correlation(x, variance, window), sigma)
+
+
 def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_variance: torch.Tensor,
                         sigma: float, k: float, window: float = 0.0, settled: float = 0.0) -> torch.Tensor:
     """The low-frequency anchor applied as far as the gap is larger than the anchor's noise:
@@ -788,7 +795,7 @@ def anchor_where_biased(image: torch.Tensor, anchor: torch.Tensor, anchor_varian
     gap = gaussian_lowpass(anchor - image, sigma)
     gap2 = gap.square().mean(1, keepdim=True)
     if window > 0:
-        var = correlated_lowpass_variance(variance, noise_correlation(anchor, variance, window), sigma)
+        var = estimated_lowpass_variance(anchor, variance, window, sigma)
     else:
         var = lowpass_variance(variance, sigma)
     noise = k * var

@@ -624,7 +624,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
     docs/RECONSTRUCTION_LOG.md (seventeenth session).
     Consistent: t and every ~z^i' are convex combinations of estimates that converge to x_c.
     """
-    from .guard import correlated_lowpass_variance, gaussian_lowpass, noise_correlation
+    from .guard import estimated_lowpass_variance, gaussian_lowpass
 
     m, k = cfg.anchor_source, cfg.cascade
     t, vt = anchor_target(z, variances[:, m:m + 1], variances[:, m + 1:m + 2] if m < z.shape[1] else None,
@@ -639,7 +639,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
         rj2 = radii[:, j:j + 1].square()
         floor = torch.where(rj2 > 0, torch.maximum(vj, wider / rj2.clamp(min=tiny)), vj)
         wider = torch.maximum(wider, energy[:, j:j + 1])
-        noise = correlated_lowpass_variance(floor, noise_correlation(z[:, j - 1], floor, cfg.anchor_window), sigma)
+        noise = estimated_lowpass_variance(z[:, j - 1], floor, cfg.anchor_window, sigma)
         d2 = gaussian_lowpass(t - z[:, j - 1], sigma).square().mean(1, keepdim=True)
         w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
         if free is not None:
@@ -682,15 +682,15 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     ``holdout_n1024_s16`` N = 64, pixel (52, 75): ~y 7.5, ~z^1..~z^4 14 / 22 / 37 / 62,
     reference 4.2; the output was 44). Measured in docs/RECONSTRUCTION_LOG.md (nineteenth
     session). Consistent: the step's aim is a convex combination of estimates that converge."""
-    from .guard import correlated_lowpass_variance, gaussian_lowpass, noise_correlation
+    from .guard import estimated_lowpass_variance, gaussian_lowpass
 
     tiny = torch.finfo(z.dtype).tiny
     k = cfg.cascade_y
     # the ~z^j's own trend first: ~z^1 departs from t_0 beyond its noise (most pixels do not)
     v1 = variances[:, 1:2].clamp(min=0.0)
     narrow = gaussian_lowpass(t0 - z[:, 0], sigma)
-    trend = narrow.square().mean(1, keepdim=True) > k * correlated_lowpass_variance(
-        v1, noise_correlation(z[:, 0], v1, cfg.anchor_window), sigma)
+    trend = narrow.square().mean(1, keepdim=True) > k * estimated_lowpass_variance(z[:, 0], v1, cfg.anchor_window,
+                                                                                 sigma)
     if free is not None:
         trend &= ~free
     if not bool(trend.any()):
@@ -703,7 +703,7 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     null = torch.where(r02 > 0, per_event * t.mean(1, keepdim=True).clamp(min=0.0) / r02.clamp(min=tiny),
                        torch.zeros_like(vy))
     vy_test = torch.maximum(torch.sqrt(vy * torch.maximum(vy, null)), Y_NULL_SHARE * null)
-    noise = correlated_lowpass_variance(vy_test, noise_correlation(y, vy_test, cfg.anchor_window), sigma)
+    noise = estimated_lowpass_variance(y, vy_test, cfg.anchor_window, sigma)
     gap = gaussian_lowpass(t - y, sigma)
     d2 = gap.square().mean(1, keepdim=True)
     w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
