@@ -340,6 +340,8 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                f"narrower estimate's by more than {guide.cascade:g} x the latter's noise (a wide kernel's bandwidth "
                "bias beside a bright caustic), the wider ~z^j of the range pulled to that aim by as much and "
                f"OIDN given it in place of ~z^{guide.source}"
+               + (f", and on to ~y where ~z^1 departs the same way and their low-passes differ by more than "
+                  f"{guide.cascade_y:g} x ~y's noise (floored by what the ~z^j predict for it)" if guide.cascade_y else "")
                + (f" (from N = {guide.cascade_passes:g} passes)" if guide.cascade_passes else "") + ","
                if guide.cascade else "")
             + " where they differ by more than its noise"

@@ -640,8 +640,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
         floor = torch.where(rj2 > 0, torch.maximum(vj, wider / rj2.clamp(min=tiny)), vj)
         wider = torch.maximum(wider, energy[:, j:j + 1])
         noise = estimated_lowpass_variance(z[:, j - 1], floor, cfg.anchor_window, sigma)
-        d2 = gaussian_lowpass(t - z[:, j - 1], sigma).square().mean(1, keepdim=True)
-        w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
+        w = step_weight(gaussian_lowpass(t - z[:, j - 1], sigma).square().mean(1, keepdim=True), noise, k)
         if free is not None:
             w = torch.where(free, torch.zeros_like(w), w)
         t, vt = torch.lerp(t, z[:, j - 1], w), torch.lerp(vt, vj, w)
@@ -653,6 +652,12 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
         return Aim(torch.lerp(t, y, w), torch.lerp(vt, variances[:, :1].clamp(min=0.0), w),
                    torch.lerp(z, t[:, None], pulled), free)
     return Aim(t, vt, torch.lerp(z, t[:, None], pulled), free)
+
+
+def step_weight(d2: torch.Tensor, noise: torch.Tensor, k: float) -> torch.Tensor:
+    """The cascade's soft step weight ``max(0, d2 - k noise) / d2`` in [0, 1] (0 where d2 = 0):
+    the share of a low-pass gap |D|^2 = ``d2`` beyond k times its noise; d2 and noise (B, 1, H, W)."""
+    return ((d2 - k * noise) / d2.clamp(min=torch.finfo(d2.dtype).tiny)).clamp(0.0, 1.0)
 
 
 #: :func:`y_step`: ~y's test variance is at least this share of what the ~z^j predict for it.
@@ -705,8 +710,7 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     vy_test = torch.maximum(torch.sqrt(vy * torch.maximum(vy, null)), Y_NULL_SHARE * null)
     noise = estimated_lowpass_variance(y, vy_test, cfg.anchor_window, sigma)
     gap = gaussian_lowpass(t - y, sigma)
-    d2 = gap.square().mean(1, keepdim=True)
-    w = ((d2 - k * noise) / d2.clamp(min=tiny)).clamp(0.0, 1.0)
+    w = step_weight(gap.square().mean(1, keepdim=True), noise, k)
     trend &= gap.mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0     # ~y on ~z^1's side of t
     return torch.where(trend, w, torch.zeros_like(w))
 
