@@ -150,7 +150,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_z_spike: float | None = None, guide_anchor_free: float | None = None,
             guide_y_empty: float | None = None, guide_redistribute: float | None = None,
             guide_cascade: float | None = None, guide_cascade_passes: float | None = None,
-            guide_cascade_y: float | None = None,
+            guide_cascade_y: float | None = None, guide_cascade_y_up: float | None = None,
             tile: int | None = None,
             device: str = "cpu",
             precision: str = "auto") -> np.ndarray:
@@ -199,7 +199,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     cascade (0 = every N; None: the model's), as ``--guide-cascade-passes``;
     ``guide_cascade_y``: the cascade's aim taken one step further, to ~y, where ~y's low-pass
     departs from it by more than this many times ~y's noise and ~z^1 departs the same way
-    (factor k >= 0, 0 = off; None: the model's), as ``--guide-cascade-y``; ``tile``,
+    (factor k >= 0, 0 = off; None: the model's), as ``--guide-cascade-y``;
+    ``guide_cascade_y_up``: renders of fewer passes take that step down only (0 = up and down
+    at every N; None: the model's), as ``--guide-cascade-y-up``; ``tile``,
     ``device``, ``precision`` as its options.
 
     >>> import ppmrecon
@@ -230,7 +232,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "y_found": guide_y_found, "z_spike": guide_z_spike,
                                          "anchor_free": guide_anchor_free, "y_empty": guide_y_empty,
                                          "redistribute": guide_redistribute, "cascade": guide_cascade,
-                                         "cascade_passes": guide_cascade_passes, "cascade_y": guide_cascade_y},
+                                         "cascade_passes": guide_cascade_passes, "cascade_y": guide_cascade_y,
+                                         "cascade_y_up": guide_cascade_y_up},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

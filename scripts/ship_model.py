@@ -85,6 +85,9 @@ RESHIP_NUMBERS = (
     ("--guide-cascade-y", "K", "ship with the cascade's aim taken one step further, to ~y, where their "
                                "low-passes differ by more than K x ~y's noise and ~z^1 departs the same way "
                                "(GuideConfig.cascade_y; 0 = off)", "guide", "cascade_y"),
+    ("--guide-cascade-y-up", "M", "ship with renders of fewer than M passes taking the cascade's step to ~y "
+                                  "down only (GuideConfig.cascade_y_up; 0 = up and down at every N)",
+     "guide", "cascade_y_up"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -341,7 +344,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                "bias beside a bright caustic), the wider ~z^j of the range pulled to that aim by as much and "
                f"OIDN given it in place of ~z^{guide.source}"
                + (f", and on to ~y where ~z^1 departs the same way and their low-passes differ by more than "
-                  f"{guide.cascade_y:g} x ~y's noise (floored by what the ~z^j predict for it)" if guide.cascade_y else "")
+                  f"{guide.cascade_y:g} x ~y's noise (floored by what the ~z^j predict for it)"
+                  + (f" (below N = {guide.cascade_y_up:g} passes only where ~y lies below the aim)"
+                     if guide.cascade_y_up else "") if guide.cascade_y else "")
                + (f" (from N = {guide.cascade_passes:g} passes)" if guide.cascade_passes else "") + ","
                if guide.cascade else "")
             + " where they differ by more than its noise"

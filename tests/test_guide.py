@@ -509,6 +509,23 @@ def test_y_step_takes_the_aim_to_y_where_the_z_trend_shows():
         cascade_aim(z, var, radii, on, 1.5, None)
 
 
+def test_y_step_down_only_steps_no_aim_up():
+    """cascade_aim(y_up=False): a trend up (~y above ~z^1 above the wide estimates, as a photon
+    beside the hit points makes) steps the aim up to ~y with y_up and not at all without it,
+    where the aim is the ~z^j's alone; a step down is the same either way."""
+    from ppmrecon.model.guide import cascade_aim
+
+    y, z, var, radii = _trend()
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, cascade=4.0, anchor_window=3.0, cascade_y=4.0)
+    assert torch.equal(cascade_aim(z, var, radii, on, 1.5, None, y).t,
+                       cascade_aim(z, var, radii, on, 1.5, None, y, y_up=False).t)
+    peak_y, peak_z = 4.0 - y, 4.0 - z                   # mirrored: ~y 3 > ~z^1 2.5 > ~z^2 2 > wide 1
+    plain = cascade_aim(peak_z, var, radii, replace(on, cascade_y=0.0), 1.5, None).t
+    up = cascade_aim(peak_z, var, radii, on, 1.5, None, peak_y).t
+    assert bool((up[..., 13:] > plain[..., 13:] + 0.3).all())          # stepped on up towards ~y's 3
+    assert torch.equal(cascade_aim(peak_z, var, radii, on, 1.5, None, peak_y, y_up=False).t, plain)
+
+
 def test_cascade_in_the_envelope_and_the_guide():
     """The envelope with the cascade on holds the biased wide ends out of the range and the
     anchor at the narrow level (the image near 1, not 3, on the right); converged inputs are
@@ -1218,6 +1235,30 @@ def test_cli_and_api_guide_cascade_y(tmp_path, capsys):
     on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=0.0, cascade_y=4.0)
     model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
     np.testing.assert_array_equal(denoise(buf, model).rgb, denoise(buf, model, guide=replace(on, cascade_y=0.0)).rgb)
+
+
+def test_cascade_y_up_gates_the_step_up_by_passes(tmp_path, capsys):
+    """GuideConfig.cascade_y_up M: a render of fewer than M passes takes the step to ~y down
+    only (a trend up leaves the output as with the step off), one of M or more as with M = 0;
+    --guide-cascade-y-up / guide_cascade_y_up= agree and the header says it (``up=M``);
+    negative or not a number: one clear line, exit 2, no output; the setting is checked."""
+    buf = _biased_buffer(35)
+    est = 4.0 - buf.estimates                           # a trend up: ~y 3.5 over ~z^1, ~z^2 3 over ~z^3, ~z^4 1
+    est[0] = 3.5
+    buf = replace(buf, estimates=est, header=dict(buf.header, **{B.H_PASSES: 32}))
+    on = replace(ENVELOPE, anchor_source=3, anchor_select=4.0, anchor_window=3.0, cascade=4.0, cascade_y=4.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    both, off = denoise(buf, model).rgb, denoise(buf, model, guide=replace(on, cascade_y=0.0)).rgb
+    assert not np.array_equal(both, off)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, cascade_y_up=64.0)).rgb, off)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, cascade_y_up=32.0)).rgb, both)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-cascade", "4", "--guide-cascade-y", "4"]
+    _switch_agrees_and_refuses(tmp_path, capsys, buf, args, "--guide-cascade-y-up", "64",
+                               " cascade=4 ystep=4 up=64", " cascade=4 ystep=4",
+                               guide_cascade=4.0, guide_cascade_y=4.0)
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="cascade_y_up"):
+            replace(on, cascade_y_up=bad)
 
 
 def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, capsys):

@@ -110,6 +110,10 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "kernel), where their low-passes differ by more than K x ~y's noise and ~z^1 departs from the wide "
      "estimates the same way (beside a bright caustic even ~z^1 gathers its photons); 0 = off (default: the "
      "checkpoint's)"),
+    ("--guide-cascade-y-up", "M", "cascade_y_up",
+     "envelope modes, with --guide-cascade-y: renders of fewer than M passes take its step to ~y down only (a "
+     "photon near the hit points lifts the narrow kernels most, which over few passes reads as the same trend "
+     "up); 0 = up and down at every N (default: the checkpoint's; the shipped model's 64)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -392,7 +396,9 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" cascade={guide.cascade:g}" if guide.cascade and guide.mode in ENVELOPE_MODES else ""
     spike += (f" from={guide.cascade_passes:g}" if guide.cascade and guide.cascade_passes
               and guide.mode in ENVELOPE_MODES else "")
-    spike += f" ystep={guide.cascade_y:g}" if guide.cascade and guide.cascade_y and guide.mode in ENVELOPE_MODES else ""
+    ystep = bool(guide.cascade and guide.cascade_y and guide.mode in ENVELOPE_MODES)
+    spike += f" ystep={guide.cascade_y:g}" if ystep else ""
+    spike += f" up={guide.cascade_y_up:g}" if ystep and guide.cascade_y_up else ""
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""

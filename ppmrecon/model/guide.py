@@ -64,7 +64,9 @@ estimate's by more than k times that one's noise, the range's wider ~z^j are pul
 final aim, and OIDN denoises that aim in place of ~z^4: beside a bright caustic the wide kernels
 gather its photons, and the guide, the range and the anchor otherwise all follow them. With
 ``cascade_y`` (shipped at 4) the aim takes one more step, to ~y, where ~z^1 itself shows the
-trend (:func:`y_step`): on a caustic's rim even ~z^1 carries its photons.
+trend (:func:`y_step`): on a caustic's rim even ~z^1 carries its photons. The shipped step is
+taken down only in renders of fewer than 64 passes (``cascade_y_up``): a photon near a hit
+point lifts the narrow kernels most, which over few passes reads as the same trend upwards.
 
 **Chooser mode** (``mode = "chooser"``; the shipped model carries a chooser, opt-in): the
 envelope and seven other images held in the same range, mixed per pixel by a small trained
@@ -150,6 +152,7 @@ _NUMBERS = {
     "cascade": (">=0", "a factor >= 0 (0 = off)"),
     "cascade_passes": (">=0", "a pass count >= 0 (0 = every N)"),
     "cascade_y": (">=0", "a factor >= 0 (0 = off)"),
+    "cascade_y_up": (">=0", "a pass count >= 0 (0 = up and down at every N)"),
 }
 
 
@@ -274,6 +277,15 @@ class GuideConfig:
     #: ``holdout_n1024_s16`` N = 64, pixel (52, 75): ~y 7.5, ~z^1..~z^4 14 / 22 / 37 / 62,
     #: reference 4.2; 0 = off (checkpoints without it read as 0)
     cascade_y: float = 0.0
+    #: with ``cascade_y``: renders of fewer than this many passes take that step down only
+    #: (~y below the aim); 0 = up and down at every N (checkpoints without it read as 0). A
+    #: photon landing near a hit point adds E / (pi r^2) to every kernel that holds it, the
+    #: narrow ones most, which over few passes reads as the trend of a real peak
+    #: (``holdout_s18`` ``0010_indirect`` N = 16: ~y 42, ~z^1..~z^4 31 / 22 / 19 / 14, a 4096-pass
+    #: reference 13.4; against it the image is 0.977 of its best input stepping down only, 1.055
+    #: stepping up too); the bias the step is for lies the other way (wide kernels beside a
+    #: bright caustic read high)
+    cascade_y_up: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -597,7 +609,7 @@ class Aim(NamedTuple):
 
 
 def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, cfg: GuideConfig, sigma: float,
-                free: torch.Tensor | None, y: torch.Tensor | None = None) -> Aim:
+                free: torch.Tensor | None, y: torch.Tensor | None = None, y_up: bool = True) -> Aim:
     """The anchor aim stepped on down to the narrower ~z^j (``cfg.cascade`` k), per pixel:
 
         t, V_t = :func:`anchor_target` (~z^m or between ~z^m and ~z^(m+1)),  m = ``cfg.anchor_source``
@@ -606,7 +618,8 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
             t = t + w_j (~z^j - t),    V_t = V_t + w_j (V_j - V_t)
         ~z^i' = ~z^i + p_i (t - ~z^i),  p_i = 1 - prod_{j < i} (1 - w_j)
         with ``cfg.cascade_y``, one more step, to ~y (y (B, 3, H, W)), no ~z^j pulled by it:
-        t = t + w_y (~y - t),  V_t = V_t + w_y (V_y - V_t),  w_y from :func:`y_step`
+        t = t + w_y (~y - t),  V_t = V_t + w_y (V_y - V_t),  w_y from :func:`y_step` (down only
+        with ``y_up`` False)
 
     z (B, 4, 3, H, W), ``variances`` and ``radii`` (B, 5, H, W) in schema order, ``free`` the
     speckle field (:func:`speckle_field`, w = 0 there: the guard's thinning makes a narrow
@@ -648,7 +661,7 @@ def cascade_aim(z: torch.Tensor, variances: torch.Tensor, radii: torch.Tensor, c
     if cfg.cascade_y:
         if y is None:
             raise ValueError("cascade_aim: the guide's cascade_y needs ~y")
-        w = y_step(t0, t, y, z, variances, radii, cfg, sigma, free)
+        w = y_step(t0, t, y, z, variances, radii, cfg, sigma, free, y_up)
         return Aim(torch.lerp(t, y, w), torch.lerp(vt, variances[:, :1].clamp(min=0.0), w),
                    torch.lerp(z, t[:, None], pulled), free)
     return Aim(t, vt, torch.lerp(z, t[:, None], pulled), free)
@@ -665,7 +678,8 @@ Y_NULL_SHARE = 0.25
 
 
 def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor,
-           radii: torch.Tensor, cfg: GuideConfig, sigma: float, free: torch.Tensor | None) -> torch.Tensor:
+           radii: torch.Tensor, cfg: GuideConfig, sigma: float, free: torch.Tensor | None,
+           up: bool = True) -> torch.Tensor:
     """The weight w_y (B, 1, H, W) of :func:`cascade_aim`'s last step, from its aim t to ~y
     (hit point A, the narrowest kernel r_0), k = ``cfg.cascade_y``:
 
@@ -675,7 +689,9 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     and w_y = 0 unless the ~z^j show the same trend: G_sigma * (t_0 - ~z^1), t_0 the aim of
     the wide estimates (:func:`anchor_target`), departs from 0 by more than k times ~z^1's
     noise, with the sign of D (RGB means: ~y lies on ~z^1's side of t); 0 in the speckle
-    field ``free``.
+    field ``free``; with ``up`` False, also where the step would go up (mean D < 0: ~y above
+    t), as :func:`.infer.buffer_aim` asks below ``cfg.cascade_y_up`` passes: a photon near the
+    hit points lifts the narrow kernels most, a trend up that noise makes at few passes.
     V_0 is the variance the ~z^j predict for ~y were its mean the aim's level L_t (a photon
     estimate's variance of the mean is its level times the energy per event over its kernel
     area, V_i r_i^2 / L_i for ~z^i, L the RGB mean): a ~y whose passes missed photons reads
@@ -711,6 +727,8 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     noise = estimated_lowpass_variance(y, vy_test, cfg.anchor_window, sigma)
     gap = gaussian_lowpass(t - y, sigma)
     w = step_weight(gap.square().mean(1, keepdim=True), noise, k)
+    if not up:
+        trend &= gap.mean(1, keepdim=True) > 0                       # ~y below the aim: a step down
     trend &= gap.mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0     # ~y on ~z^1's side of t
     return torch.where(trend, w, torch.zeros_like(w))
 

@@ -195,10 +195,11 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
 def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim | None:
     """:func:`.guide.cascade_aim` of a whole (guarded) buffer file; None where the guide's
     cascade is off (or the guard, whose anchor width it takes, is), or the render has fewer
-    passes than its ``cascade_passes``."""
+    passes than its ``cascade_passes``; below ``cascade_y_up`` passes its step to ~y goes down only."""
     if not (guide.cascade and guide.mode in ENVELOPE_MODES and guard.enabled and guard.anchor > 0):
         return None
-    if guide.cascade_passes and passes_of(buf) < guide.cascade_passes:
+    passes = passes_of(buf)
+    if guide.cascade_passes and passes < guide.cascade_passes:
         return None                   # too few passes for its variance test (GuideConfig.cascade_passes)
     # channels-first in memory: the per-channel means and steps of the tests run ~15% faster
     # than on the buffer's pixel-major layout, and the pulled ~z^j come out in it
@@ -207,7 +208,8 @@ def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim |
     radii = torch.from_numpy(np.ascontiguousarray(buf.radii, np.float32))[None]
     y, z = est[:, 0], est[:, 1:]
     with torch.no_grad():
-        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free), y)
+        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free), y,
+                           y_up=not (guide.cascade_y_up and passes < guide.cascade_y_up))
 
 
 def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig, scale: float | None = None,
