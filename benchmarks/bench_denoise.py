@@ -19,7 +19,8 @@ untrained (timing and memory do not depend on their values), except ``shipped``:
 default checkpoint with its firefly guard and denoiser guide (OIDN inside), as
 ``ppmrecon-denoise`` runs it (in the guide's envelope mode that is no network at all; in
 its chooser mode the envelope and the chooser), and ``shipped:MODE``, the same in another
-guide mode (``shipped:envelope``: the envelope alone).
+guide mode (``shipped:envelope``: the envelope alone) or with another guide denoiser
+(``shipped:nlm_source``: NL-means for the guide's source).
 Writes `denoise.md`, `denoise.json` and `denoise.png` into --out.
 """
 
@@ -113,8 +114,13 @@ def worker(spec: dict) -> dict:
             from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint
 
             model = load_checkpoint(DEFAULT_MODEL).model
-            if ":" in spec["method"]:                   # shipped:MODE, another guide mode of it
-                model.guide = model.guide.in_mode(spec["method"].split(":", 1)[1])
+            if ":" in spec["method"]:                   # shipped:MODE, another guide mode or denoiser of it
+                from dataclasses import replace
+
+                from ppmrecon.model.guide import DENOISERS
+                how = spec["method"].split(":", 1)[1]
+                model.guide = (replace(model.guide, denoiser=how) if how in DENOISERS
+                               else model.guide.in_mode(how))
         else:
             model = build(spec["method"]).eval()
         precision = resolve_precision(spec["precision"], torch.device("cpu"))

@@ -143,6 +143,8 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
+            guide_denoiser: str | None = None, guide_nlm_k: float | None = None,
+            guide_nlm_radius: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -163,7 +165,11 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     (default), ``off`` or ``model`` (as the checkpoint was trained), as
     ``ppmrecon-denoise --guard``; ``guide``: the denoiser guide (OIDN of ~z^4),
     likewise; ``guide_quality``: OIDN's mode for the guide (``high``, ``balanced``,
-    ``fast``; None: the model's); ``guide_mode``: ``envelope`` (OIDN's image held inside
+    ``fast``; None: the model's); ``guide_denoiser``: what denoises the guide's images,
+    ``oidn``, ``nlm`` (variance-normalised NL-means for the source and ~y) or ``nlm_source``
+    (for the source, OIDN for ~y; None: the model's), as ``--guide-denoiser``, with
+    ``guide_nlm_k`` / ``guide_nlm_radius`` as ``--guide-nlm-k`` / ``--guide-nlm-radius``;
+    ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
     shipped one) or ``weights`` (the prior of Eq. 6's weights, corrected by the network;
@@ -212,8 +218,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_mode, with_guide_numbers,
-                            with_guide_quality)
+    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_denoiser, with_guide_mode,
+                            with_guide_numbers, with_guide_quality)
     from .model.infer import denoise as run
 
     for name, value in (("guard", guard), ("guide", guide)):
@@ -226,6 +232,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     chosen = with_guide_quality(guide_choice(guide, net.guide), guide_quality, "denoise: guide_quality",
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
+    chosen = with_guide_denoiser(chosen, guide_denoiser, "denoise: guide_denoiser", "guide=")
     chosen = with_guide_numbers(chosen, {"y_weight": guide_y_weight, "y_spike": guide_y_spike,
                                          "anchor_settled": guide_anchor_settled, "anchor_select": guide_anchor_select,
                                          "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,
@@ -233,7 +240,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "anchor_free": guide_anchor_free, "y_empty": guide_y_empty,
                                          "redistribute": guide_redistribute, "cascade": guide_cascade,
                                          "cascade_passes": guide_cascade_passes, "cascade_y": guide_cascade_y,
-                                         "cascade_y_up": guide_cascade_y_up},
+                                         "cascade_y_up": guide_cascade_y_up, "nlm_k": guide_nlm_k,
+                                         "nlm_radius": guide_nlm_radius},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

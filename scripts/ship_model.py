@@ -34,7 +34,7 @@ from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
 from ppmrecon.model.chooser import CANDIDATES  # noqa: E402
 from ppmrecon.model.guard import GuardConfig  # noqa: E402
-from ppmrecon.model.guide import ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
+from ppmrecon.model.guide import DENOISERS, ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
@@ -137,6 +137,9 @@ def main() -> None:
     ap.add_argument("--guide-mode", choices=GUIDE_MODES, default=None,
                     help="ship with the denoiser guide in this mode (default: as trained); the choice "
                          "should come from held-out figures: give them with --bench")
+    ap.add_argument("--guide-denoiser", choices=DENOISERS, default=None,
+                    help="ship with this denoiser for the guide's images (GuideConfig.denoiser: oidn, nlm, "
+                         "nlm_source); the choice should come from held-out figures: give them with --bench")
     ap.add_argument("--bench", type=Path, action="append", default=None,
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card "
                          "(repeatable: one table each, e.g. the training data and a hold-out set)")
@@ -277,6 +280,8 @@ def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
     not give one."""
     mode = args.guide_mode or mode
     values = reship_values(args, "guide")
+    if args.guide_denoiser is not None:
+        values.append(("denoiser", args.guide_denoiser, "--guide-denoiser"))
     if (mode or values) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if mode and mode != guide.mode:
@@ -288,7 +293,8 @@ def command_flags(args: argparse.Namespace) -> str:
     """The guide and bench flags of this command, as the card quotes them."""
     numbers = "".join(f" {flag} {getattr(args, _dest(flag)):g}" for flag, *_ in RESHIP_NUMBERS
                       if getattr(args, _dest(flag)) is not None)
-    return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "") + numbers
+    return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
+            + (f" --guide-denoiser {args.guide_denoiser}" if args.guide_denoiser else "") + numbers
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + "".join(f" --bench {path}" for path in args.bench or ()))
 
@@ -319,7 +325,12 @@ def shipped_row(guide: GuideConfig) -> list[str]:
     """The card's "shipped reconstruction" row (envelope and chooser modes)."""
     if not (guide.enabled and guide.mode in ENVELOPE_MODES):
         return []
-    mixed = (f"OIDN's images of ~z^{guide.source} and ~y mixed by the inverse of their inputs' local variances, "
+    nlm = (f"the variance-normalised NL-means (Rousselle et al. 2012; k = {guide.nlm_k:g}, a "
+           f"{2 * int(guide.nlm_radius) + 1} x {2 * int(guide.nlm_radius) + 1} px window)")
+    images = {"oidn": f"OIDN's images of ~z^{guide.source} and ~y",
+              "nlm": f"{nlm}'s images of ~z^{guide.source} and ~y",
+              "nlm_source": f"{nlm}'s image of ~z^{guide.source} and OIDN's of ~y"}[guide.denoiser]
+    mixed = (f"{images} mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}"
              + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "
                 f"~z^{guide.source} rests on more than one photon event)" if guide.y_empty else "")
@@ -396,9 +407,9 @@ def trained_guard(history: list[dict], current: GuardConfig) -> GuardConfig:
 def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
-    if args.guide_mode is None and args.chooser is None \
+    if args.guide_mode is None and args.chooser is None and args.guide_denoiser is None \
             and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
-        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, "
+        sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-denoiser, "
                  + ", ".join(flag for flag, *_ in RESHIP_NUMBERS) + ", --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before, guard_before = ckpt.model.guide, ckpt.model.guard

@@ -1261,6 +1261,54 @@ def test_cascade_y_up_gates_the_step_up_by_passes(tmp_path, capsys):
             replace(on, cascade_y_up=bad)
 
 
+def test_nlm_image_keeps_detail_above_the_noise_and_averages_noise():
+    """nlm_image: an image with variance 0 comes back unchanged; on a flat field of known
+    variance the noise falls several-fold, the mean stays; a step of 10 noise deviations
+    stays sharp (no pixel takes more than a few percent of the other side)."""
+    from ppmrecon.model.guide import nlm_image
+
+    gen = torch.Generator().manual_seed(3)
+    clean = torch.rand(3, 24, 24, generator=gen)
+    torch.testing.assert_close(nlm_image(clean, torch.zeros(24, 24)), clean, rtol=0, atol=1e-6)
+    sd = 0.1
+    flat = 1.0 + sd * torch.randn(3, 32, 32, generator=gen)
+    out = nlm_image(flat, torch.full((32, 32), sd * sd))
+    assert float(out.std()) < float(flat.std()) / 3
+    assert abs(float(out.mean()) - 1.0) < 0.02
+    step = torch.where(torch.arange(32) < 16, 1.0, 2.0).expand(3, 32, 32) + 0.01 * torch.randn(3, 32, 32, generator=gen)
+    kept = nlm_image(step, torch.full((32, 32), 1e-4))
+    assert float(kept[..., :15].max()) < 1.05 and float(kept[..., 17:].min()) > 1.95
+
+
+def test_cli_and_api_guide_denoiser(tmp_path, capsys):
+    """--guide-denoiser nlm / nlm_source (and --guide-nlm-k, --guide-nlm-radius) agree with
+    ppmrecon.denoise(guide_denoiser=...), the header names the denoiser, the images differ from
+    OIDN's; an unknown denoiser, a radius that is not a whole number or k <= 0: one clear line,
+    exit 2, no output."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=37)
+    args = _envelope_cli(tmp_path, buf)
+    oidn = ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope")
+    for name in ("nlm", "nlm_source"):
+        image = _cli_and_api_agree(tmp_path, buf, args + ["--guide-nlm-radius", "3"], "--guide-denoiser", name,
+                                   "", guide_denoiser=name,
+                                   guide_nlm_radius=3)
+        assert not np.array_equal(image, oidn)
+        _, header = B.read_rgb(tmp_path / "cli.exr")
+        assert header["ppmrecon.guide"].startswith("nlm k=0.45 r=3(z4")
+    with pytest.raises(SystemExit) as stop:                      # argparse's own choice check
+        denoise_main(args + ["--guide-denoiser", "bm3d", "-o", str(tmp_path / "x.exr")])
+    assert stop.value.code == 2 and "--guide-denoiser" in capsys.readouterr().err
+    for bad in (["--guide-denoiser", "nlm", "--guide-nlm-radius", "2.5"],
+                ["--guide-denoiser", "nlm", "--guide-nlm-k", "0"]):
+        assert denoise_main(args + bad + ["-o", str(tmp_path / "x.exr")]) == 2
+        assert bad[-2] in capsys.readouterr().err
+    assert not (tmp_path / "x.exr").exists()
+    with pytest.raises(UsageError, match="guide_denoiser"):
+        ppmrecon.denoise(buf, tmp_path / "m.pt", guide_denoiser="bm3d")
+
+
 def test_cascade_passes_leaves_few_pass_renders_without_the_cascade(tmp_path, capsys):
     """GuideConfig.cascade_passes M: a render of fewer than M passes is denoised exactly as
     with the cascade off (no aim is made), one of M or more exactly as with it at every N; the

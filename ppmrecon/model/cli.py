@@ -39,7 +39,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, ENVELOPE_MODES, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
+from .guide import DEFAULT_GUIDE, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -114,6 +114,12 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "envelope modes, with --guide-cascade-y: renders of fewer than M passes take its step to ~y down only (a "
      "photon near the hit points lifts the narrow kernels most, which over few passes reads as the same trend "
      "up); 0 = up and down at every N (default: the checkpoint's; the shipped model's 64)"),
+    ("--guide-nlm-k", "K", "nlm_k",
+     "with --guide-denoiser nlm or nlm_source: the patch distance's tolerance in units of the noise, K > 0 "
+     "(default: the checkpoint's, 0.45)"),
+    ("--guide-nlm-radius", "R", "nlm_radius",
+     "with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number >= 1 "
+     "(patches of half width R // 2; the time grows as R^2; default: the checkpoint's, 3)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -169,6 +175,12 @@ def build_parser() -> ArgumentParser:
                         "corrected by the network (default: the checkpoint's)")
     p.add_argument("--guide-quality", choices=OIDN_QUALITIES, default=None,
                    help="OIDN's quality mode for the guide (default: the checkpoint's, 'fast')")
+    p.add_argument("--guide-denoiser", choices=DENOISERS, default=None,
+                   help="what denoises the guide's images: 'oidn' (OIDN for both), 'nlm' = NL-means "
+                        "with the patch distance in units of each pixel's noise (Rousselle et al. 2012) for "
+                        "both the source and ~y, 'nlm_source' = NL-means for the source, OIDN for ~y "
+                        "(default: the checkpoint's; the shipped model's nlm_source): NL-means keeps detail "
+                        "the noise does not hide, where OIDN smooths it (README)")
     for flag, metavar, _, text in GUIDE_NUMBERS:
         p.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
@@ -244,6 +256,12 @@ def with_guide_mode(guide: GuideConfig, mode: str | None, option: str, switch: s
     """``guide`` in mode ``mode`` ("weights" or "envelope"; None: unchanged), errors named
     as :func:`with_guide_quality` names them; the envelope drops a learned temperature."""
     return _with_guide_setting(guide, "mode", mode, GUIDE_MODES, option, switch)
+
+
+def with_guide_denoiser(guide: GuideConfig, denoiser: str | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with the guide images' denoiser ``denoiser`` (one of :data:`.guide.DENOISERS`;
+    None: unchanged), errors named as :func:`with_guide_quality` names them."""
+    return _with_guide_setting(guide, "denoiser", denoiser, DENOISERS, option, switch)
 
 
 def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, switch: str) -> GuideConfig:
@@ -340,6 +358,7 @@ def _main(argv: Sequence[str] | None = None) -> int:
     guide = with_guide_quality(guide_choice(args.guide or "on", model.guide), args.guide_quality, "--guide-quality",
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
+    guide = with_guide_denoiser(guide, args.guide_denoiser, "--guide-denoiser", "--guide")
     guide = with_guide_numbers(guide, {key: getattr(args, flag[2:].replace("-", "_"))
                                        for flag, _, key, _ in GUIDE_NUMBERS}, lambda flag: flag, "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
@@ -405,7 +424,10 @@ def _guide_header(guide: GuideConfig) -> str:
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
-    return (f"oidn(z{guide.source}, {guide.quality}) {guide.mode} {how} cross={guide.cross:g} "
+    nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}"
+    source = {"oidn": f"oidn(z{guide.source}, {guide.quality})", "nlm": f"{nlm}(z{guide.source}, y)",
+              "nlm_source": f"{nlm}(z{guide.source}) oidn(y, {guide.quality})"}[guide.denoiser]
+    return (f"{source} {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 
 

@@ -81,6 +81,21 @@ is independent, and its bandwidth bias is the smallest; the shipped default has 
 share of a quarter did as well up to N = 256 but put two N = 1024 renders above their best
 input, where ~y's noise is ten times ~z^4's.
 
+**NL-means in place of OIDN for the source** (``denoiser``; the shipped default has
+"nlm_source" since the twentieth session, "oidn" before; :func:`nlm_image`): the
+variance-normalised NL-means of Rousselle, Knaus & Zwicker 2012 denoises the guide's source
+(with "nlm" ~y too) from the buffer's own variances of the mean. OIDN takes a photon map's
+blotches for signal and at many passes smooths detail the estimates already resolve (its image
+of ~z^4 scores 1.1-1.9x ~z^4 on the literature scenes at N = 256-1024); NL-means leaves a pixel
+alone where the noise is small against its differences. Against OIDN for the source, on six
+sets (``benchmarks/results/guide_s20_final_*``, variant ``shipped denoiser=oidn``): relMSE over
+the best input lower on all six (literature to N = 1024 0.676 -> 0.596, at N = 1024 0.898 ->
+0.770; ``holdout_s16`` 0.471 -> 0.430), images worse than their best input 12 -> 8, the 8x8
+ratio lower on five (``holdout_n1024_s17`` 0.829 -> 0.864 the exception). A 7 x 7 window
+(``nlm_radius`` 3) did about as well as 11 x 11 and 15 x 15 (``guide_s20_nlmr_*``,
+``guide_s20_nlm_*``) and costs what the OIDN call it replaces does (0.5 s at 1280x720 on two
+cores: the whole denoise stays at 1.86x OIDN's time).
+
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
 and temper the prior per pixel (``temperature``, :func:`guided_logits`); trained on
@@ -116,6 +131,9 @@ if TYPE_CHECKING:
 GUIDE_SOURCE = 4
 #: OIDN's quality modes (pyoidn's names).
 OIDN_QUALITIES = ("high", "balanced", "fast")
+#: what denoises the guide's images: OIDN, or variance-normalised NL-means (:func:`nlm_image`)
+#: for both images or for the source's alone
+DENOISERS = ("oidn", "nlm", "nlm_source")
 #: How the guide enters the reconstruction (:attr:`GuideConfig.mode`).
 GUIDE_MODES = ("weights", "envelope", "chooser")
 #: Modes whose output is built on the envelope (no Eq. 6).
@@ -152,6 +170,8 @@ _NUMBERS = {
     "cascade": (">=0", "a factor >= 0 (0 = off)"),
     "cascade_passes": (">=0", "a pass count >= 0 (0 = every N)"),
     "cascade_y": (">=0", "a factor >= 0 (0 = off)"),
+    "nlm_k": (">0", "a factor > 0"),
+    "nlm_radius": (">0", "a whole number of pixels >= 1"),
     "cascade_y_up": (">=0", "a pass count >= 0 (0 = up and down at every N)"),
 }
 
@@ -176,6 +196,14 @@ class GuideConfig:
     #: OIDN's time at 1280x720 for 0.2% better / 0.9% worse relMSE (study scenes /
     #: validation, ``bench_guide.py``); checkpoints without the setting read as "fast"
     quality: str = "fast"
+    #: what denoises the guide's images (:data:`DENOISERS`; checkpoints without it read as "oidn")
+    denoiser: str = "oidn"
+    #: NL-means: the patch distance's tolerance k in units of the noise (Rousselle et al. 2012)
+    nlm_k: float = 0.45
+    #: NL-means: the search window's half width in px (patches of half width radius // 2, at
+    #: least 1); the time grows as its square (3: 2.1 s for the whole denoise at 1280x720 on two
+    #: cores, 7: about 10 s, for little more: ``benchmarks/results/guide_s20_nlmr_*``)
+    nlm_radius: float = 3
     #: the network also predicts a per-pixel log-temperature tau of the prior:
     #: logits = prior * exp(-tau) + correction (see :func:`guided_logits`)
     temperature: bool = False
@@ -304,6 +332,10 @@ class GuideConfig:
         if self.quality not in OIDN_QUALITIES:
             raise ValueError(f"guide setting 'quality' must be one of {', '.join(OIDN_QUALITIES)}, "
                              f"got {self.quality!r}")
+        if not float(self.nlm_radius).is_integer():
+            raise ValueError(f"guide setting 'nlm_radius' must be a whole number of pixels >= 1, got {self.nlm_radius!r}")
+        if self.denoiser not in DENOISERS:
+            raise ValueError(f"guide setting 'denoiser' must be one of {', '.join(DENOISERS)}, got {self.denoiser!r}")
         if self.mode not in GUIDE_MODES:
             raise ValueError(f"guide setting 'mode' must be one of {', '.join(GUIDE_MODES)}, got {self.mode!r}")
         if self.mode in ENVELOPE_MODES and self.temperature:
@@ -353,6 +385,54 @@ def oidn_image(colour: np.ndarray, albedo: np.ndarray, normal: np.ndarray, quali
     out = np.asarray(out, np.float32)
     # OIDN may return tiny negatives near edges; radiance is >= 0 and the prior needs a finite guide
     return np.nan_to_num(out, nan=0.0, posinf=0.0, neginf=0.0).clip(min=0.0)
+
+
+#: NL-means: a patch distance beyond this many noise units gets weight 0 (e^-30 ~ 1e-13)
+NLM_CUT = 30.0
+
+
+def nlm_window(cfg: GuideConfig) -> tuple[int, int]:
+    """The NL-means search window's and patches' half widths in px from ``cfg.nlm_radius``."""
+    radius = int(cfg.nlm_radius)
+    return radius, max(1, radius // 2)
+
+
+def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
+              patch: int = 1) -> torch.Tensor:
+    """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
+    Zwicker 2012 (Eq. 5): colour (3, H, W), ``variance`` (H, W) its variance of the mean,
+
+        d^2(p, q) = box_f [ (|u_p - u_q|^2 - (V_p + min(V_p, V_q))) / (eps + k^2 (V_p + V_q)) ]
+        out_p = sum_q w_pq u_q / sum_q w_pq,   w_pq = exp(-max(0, d^2(p, q)))
+
+    over a (2 radius + 1)^2 window, |.|^2 the mean over R, G, B, box_f the mean over a
+    (2 patch + 1)^2 patch (cut at the image's edges). Where the noise is small against the
+    image's own differences the weights vanish and the image is kept; OIDN assumes noise and
+    smooths detail instead. Memory-bound: the buffers are reused across the window's offsets."""
+    u = colour[None].float().contiguous()
+    v = variance[None, None].float().clamp(min=0.0)
+    height, width = u.shape[-2:]
+    r = radius
+    pad_u = torch.nn.functional.pad(u, (r, r, r, r), mode="replicate")
+    pad_v = torch.nn.functional.pad(v, (r, r, r, r), mode="replicate")
+    num, den = torch.zeros_like(u), torch.zeros_like(v)
+    diff, dist, shared, scale = torch.empty_like(u), torch.empty_like(v), torch.empty_like(v), torch.empty_like(v)
+    tiny = torch.finfo(torch.float32).tiny
+    for dy in range(2 * r + 1):
+        for dx in range(2 * r + 1):
+            uq, vq = pad_u[..., dy:dy + height, dx:dx + width], pad_v[..., dy:dy + height, dx:dx + width]
+            torch.sub(u, uq, out=diff).square_()
+            torch.sum(diff, 1, keepdim=True, out=dist).mul_(1.0 / 3.0)
+            dist.sub_(torch.minimum(v, vq, out=shared).add_(v))                 # - (V_p + min(V_p, V_q))
+            dist.div_(torch.add(v, vq, out=scale).mul_(k * k).add_(tiny))
+            w = torch.nn.functional.avg_pool2d(dist, 2 * patch + 1, stride=1, padding=patch,
+                                               count_include_pad=False)
+            # weights below e^-NLM_CUT are set to 0 exactly: subnormal products otherwise slow
+            # the loop down 1.3-1.7x on CPUs (measured at 1280x720)
+            w.clamp_(0.0, NLM_CUT).neg_().exp_().sub_(math.exp(-NLM_CUT))
+            num.addcmul_(w, uq)
+            den.add_(w)
+    return (num / den)[0]
 
 
 def despike(source: torch.Tensor, y: torch.Tensor, eps: float, ratio: float = SPIKE_RATIO) -> torch.Tensor:
@@ -534,10 +614,20 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         raise ValueError("guide_images: the guide's y_weight needs the inputs' variances")
     est = torch.from_numpy(np.ascontiguousarray(estimates, np.float32)).permute(0, 3, 1, 2)
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
-    g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
+    if cfg.denoiser != "oidn" and variances is None:
+        raise ValueError("guide_images: the NL-means guide needs the inputs' variances")
+    if cfg.denoiser == "oidn":
+        g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
+    else:
+        g = nlm_image(source, torch.from_numpy(np.ascontiguousarray(variances[cfg.source], np.float32)), cfg.nlm_k,
+                      *nlm_window(cfg))
     g_source, gy = g, None
     if cfg.source and (cfg.cross or mix_y or need_y):
-        gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
+        if cfg.denoiser == "nlm":
+            gy = nlm_image(est[0], torch.from_numpy(np.ascontiguousarray(variances[0], np.float32)), cfg.nlm_k,
+                           *nlm_window(cfg))
+        else:
+            gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
             # a rare path); neither guide is to be trusted, their geometric mean lies between
