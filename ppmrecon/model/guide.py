@@ -201,8 +201,8 @@ class GuideConfig:
     #: NL-means: the patch distance's tolerance k in units of the noise (Rousselle et al. 2012)
     nlm_k: float = 0.45
     #: NL-means: the search window's half width in px (patches of half width radius // 2, at
-    #: least 1); the time grows as its square (3: 2.1 s for the whole denoise at 1280x720 on two
-    #: cores, 7: about 10 s, for little more: ``benchmarks/results/guide_s20_nlmr_*``)
+    #: least 1); the time grows as the window's area, (2 r + 1)^2 offsets (3: 0.5 s at 1280x720
+    #: on two cores; 5 and 7 scored within 3% of it: ``benchmarks/results/guide_s20_nlmr_*``)
     nlm_radius: float = 3
     #: the network also predicts a per-pixel log-temperature tau of the prior:
     #: logits = prior * exp(-tau) + correction (see :func:`guided_logits`)
@@ -400,7 +400,9 @@ def nlm_window(cfg: GuideConfig) -> tuple[int, int]:
 def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
               patch: int = 1) -> torch.Tensor:
     """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
-    Zwicker 2012 (Eq. 5): colour (3, H, W), ``variance`` (H, W) its variance of the mean,
+    Zwicker 2012 ("Adaptive Rendering with Non-Local Means Filtering", their per-pixel distance
+    with the variance-cancellation term, alpha = 1): colour (3, H, W), ``variance`` (H, W) its
+    variance of the mean,
 
         d^2(p, q) = box_f [ (|u_p - u_q|^2 - (V_p + min(V_p, V_q))) / (eps + k^2 (V_p + V_q)) ]
         out_p = sum_q w_pq u_q / sum_q w_pq,   w_pq = exp(-max(0, d^2(p, q)))
