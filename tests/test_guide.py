@@ -1301,6 +1301,7 @@ def test_cli_and_api_guide_denoiser(tmp_path, capsys):
         denoise_main(args + ["--guide-denoiser", "bm3d", "-o", str(tmp_path / "x.exr")])
     assert stop.value.code == 2 and "--guide-denoiser" in capsys.readouterr().err
     for bad in (["--guide-denoiser", "nlm", "--guide-nlm-radius", "2.5"],
+                ["--guide-denoiser", "nlm", "--guide-nlm-radius", "16"],
                 ["--guide-denoiser", "nlm", "--guide-nlm-k", "0"]):
         assert denoise_main(args + bad + ["-o", str(tmp_path / "x.exr")]) == 2
         assert bad[-2] in capsys.readouterr().err

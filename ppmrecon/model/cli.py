@@ -39,7 +39,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, OIDN_QUALITIES, GuideConfig
+from .guide import DEFAULT_GUIDE, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, NLM_MAX_RADIUS, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -118,7 +118,7 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "with --guide-denoiser nlm or nlm_source: the patch distance's tolerance in units of the noise, K > 0 "
      "(default: the checkpoint's, 0.45)"),
     ("--guide-nlm-radius", "R", "nlm_radius",
-     "with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number >= 1 "
+     f"with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number 1..{NLM_MAX_RADIUS} "
      "(patches of half width R // 2; the time grows as R^2; default: the checkpoint's, 3)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
@@ -425,8 +425,10 @@ def _guide_header(guide: GuideConfig) -> str:
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
     nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}"
-    source = {"oidn": f"oidn(z{guide.source}, {guide.quality})", "nlm": f"{nlm}(z{guide.source}, y)",
-              "nlm_source": f"{nlm}(z{guide.source}) oidn(y, {guide.quality})"}[guide.denoiser]
+    uses_y = bool(guide.y_weight or guide.cross)
+    source = {"oidn": f"oidn(z{guide.source}, {guide.quality})",
+              "nlm": f"{nlm}(z{guide.source}{', y' if uses_y else ''})",
+              "nlm_source": f"{nlm}(z{guide.source})" + (f" oidn(y, {guide.quality})" if uses_y else "")}[guide.denoiser]
     return (f"{source} {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 

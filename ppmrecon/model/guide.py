@@ -131,6 +131,9 @@ if TYPE_CHECKING:
 GUIDE_SOURCE = 4
 #: OIDN's quality modes (pyoidn's names).
 OIDN_QUALITIES = ("high", "balanced", "fast")
+#: the largest NL-means search window's half width: (2 r + 1)^2 offsets, 961 at 15 (about 10 s
+#: at 1280x720 on two cores); a mistyped radius should not run for hours
+NLM_MAX_RADIUS = 15
 #: what denoises the guide's images: OIDN, or variance-normalised NL-means (:func:`nlm_image`)
 #: for both images or for the source's alone
 DENOISERS = ("oidn", "nlm", "nlm_source")
@@ -171,7 +174,7 @@ _NUMBERS = {
     "cascade_passes": (">=0", "a pass count >= 0 (0 = every N)"),
     "cascade_y": (">=0", "a factor >= 0 (0 = off)"),
     "nlm_k": (">0", "a factor > 0"),
-    "nlm_radius": (">0", "a whole number of pixels >= 1"),
+    "nlm_radius": (">0", f"a whole number of pixels, 1..{NLM_MAX_RADIUS}"),
     "cascade_y_up": (">=0", "a pass count >= 0 (0 = up and down at every N)"),
 }
 
@@ -332,8 +335,9 @@ class GuideConfig:
         if self.quality not in OIDN_QUALITIES:
             raise ValueError(f"guide setting 'quality' must be one of {', '.join(OIDN_QUALITIES)}, "
                              f"got {self.quality!r}")
-        if not float(self.nlm_radius).is_integer():
-            raise ValueError(f"guide setting 'nlm_radius' must be a whole number of pixels >= 1, got {self.nlm_radius!r}")
+        if not (float(self.nlm_radius).is_integer() and self.nlm_radius <= NLM_MAX_RADIUS):
+            raise ValueError(f"guide setting 'nlm_radius' must be a whole number of pixels, 1..{NLM_MAX_RADIUS:g}, "
+                             f"got {self.nlm_radius!r}")
         if self.denoiser not in DENOISERS:
             raise ValueError(f"guide setting 'denoiser' must be one of {', '.join(DENOISERS)}, got {self.denoiser!r}")
         if self.mode not in GUIDE_MODES:
@@ -618,18 +622,18 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     source = despike(est[cfg.source], est[0], floor * float(scale)) if cfg.source else est[0]
     if cfg.denoiser != "oidn" and variances is None:
         raise ValueError("guide_images: the NL-means guide needs the inputs' variances")
-    if cfg.denoiser == "oidn":
-        g = torch.from_numpy(oidn_image(source.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
-    else:
-        g = nlm_image(source, torch.from_numpy(np.ascontiguousarray(variances[cfg.source], np.float32)), cfg.nlm_k,
-                      *nlm_window(cfg))
+
+    def denoised(image: torch.Tensor, index: int, nlm: bool) -> torch.Tensor:
+        """OIDN's or NL-means' image of ``image`` (3, H, W), estimate ``index``'s variances."""
+        if nlm:
+            variance = torch.from_numpy(np.ascontiguousarray(variances[index], np.float32))
+            return nlm_image(image, variance, cfg.nlm_k, *nlm_window(cfg))
+        return torch.from_numpy(oidn_image(image.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
+
+    g = denoised(source, cfg.source, cfg.denoiser != "oidn")
     g_source, gy = g, None
     if cfg.source and (cfg.cross or mix_y or need_y):
-        if cfg.denoiser == "nlm":
-            gy = nlm_image(est[0], torch.from_numpy(np.ascontiguousarray(variances[0], np.float32)), cfg.nlm_k,
-                           *nlm_window(cfg))
-        else:
-            gy = torch.from_numpy(oidn_image(estimates[0], albedo, normal, cfg.quality)).permute(2, 0, 1)
+        gy = denoised(est[0], 0, cfg.denoiser == "nlm")
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
             # a rare path); neither guide is to be trusted, their geometric mean lies between
@@ -819,9 +823,10 @@ def y_step(t0: torch.Tensor, t: torch.Tensor, y: torch.Tensor, z: torch.Tensor, 
     noise = estimated_lowpass_variance(y, vy_test, cfg.anchor_window, sigma)
     gap = gaussian_lowpass(t - y, sigma)
     w = step_weight(gap.square().mean(1, keepdim=True), noise, k)
+    side = gap.mean(1, keepdim=True)
+    trend &= side * narrow.mean(1, keepdim=True) > 0                 # ~y on ~z^1's side of t
     if not up:
-        trend &= gap.mean(1, keepdim=True) > 0                       # ~y below the aim: a step down
-    trend &= gap.mean(1, keepdim=True) * narrow.mean(1, keepdim=True) > 0     # ~y on ~z^1's side of t
+        trend &= side > 0                                            # ~y below the aim: a step down
     return torch.where(trend, w, torch.zeros_like(w))
 
 
