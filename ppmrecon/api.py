@@ -144,7 +144,8 @@ def load_model(model: str | os.PathLike | KPN | None = None) -> KPN:
 def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | KPN | None = None, *,
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
             guide_denoiser: str | None = None, guide_nlm_k: float | None = None,
-            guide_nlm_radius: float | None = None,
+            guide_nlm_radius: float | None = None, guide_nlm_y_passes: float | None = None,
+            guide_nlm_y_k: float | None = None, guide_anchor_free_dark: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -168,7 +169,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``fast``; None: the model's); ``guide_denoiser``: what denoises the guide's images,
     ``oidn``, ``nlm`` (variance-normalised NL-means for the source and ~y) or ``nlm_source``
     (for the source, OIDN for ~y; None: the model's), as ``--guide-denoiser``, with
-    ``guide_nlm_k`` / ``guide_nlm_radius`` as ``--guide-nlm-k`` / ``--guide-nlm-radius``;
+    ``guide_nlm_k`` / ``guide_nlm_radius`` / ``guide_nlm_y_passes`` / ``guide_nlm_y_k`` as
+    ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -193,7 +195,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     model's), as ``--guide-z-spike``; ``guide_anchor_free``: where all five estimates are
     unsettled at this ratio, the anchored value held in the range widened to its
     neighbourhood's (0 = off; None: the model's), as
-    ``--guide-anchor-free``; ``guide_y_empty``: ~y's share in the guide scaled by the local share
+    ``--guide-anchor-free``; ``guide_anchor_free_dark``: a pixel whose ~z^4 reads at most this
+    many times the guard's floor x the image's scale is dark, not a speckle (0 = only an empty
+    ~z^4; None: the model's), as ``--guide-anchor-free-dark``;
+    ``guide_y_empty``: ~y's share in the guide scaled by the local share
     of pixels where ~y did not read 0 while ~z^4 rests on more than one event (Gaussian width
     in px, 0 = off; None: the model's), as ``--guide-y-empty``; ``guide_redistribute``: what
     the final clamp took given back to the pixels around within their ranges (Gaussian width
@@ -241,7 +246,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "redistribute": guide_redistribute, "cascade": guide_cascade,
                                          "cascade_passes": guide_cascade_passes, "cascade_y": guide_cascade_y,
                                          "cascade_y_up": guide_cascade_y_up, "nlm_k": guide_nlm_k,
-                                         "nlm_radius": guide_nlm_radius},
+                                         "nlm_radius": guide_nlm_radius, "nlm_y_passes": guide_nlm_y_passes,
+                                         "nlm_y_k": guide_nlm_y_k, "anchor_free_dark": guide_anchor_free_dark},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

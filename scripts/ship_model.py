@@ -88,6 +88,14 @@ RESHIP_NUMBERS = (
     ("--guide-cascade-y-up", "M", "ship with renders of fewer than M passes taking the cascade's step to ~y "
                                   "down only (GuideConfig.cascade_y_up; 0 = up and down at every N)",
      "guide", "cascade_y_up"),
+    ("--guide-nlm-y-passes", "M", "ship with renders of at least M passes denoising ~y by NL-means too "
+                                  "(GuideConfig.nlm_y_passes, with denoiser nlm_source; 0 = never)",
+     "guide", "nlm_y_passes"),
+    ("--guide-nlm-y-k", "K", "ship with NL-means' tolerance K for ~y (GuideConfig.nlm_y_k; 0 = nlm_k)",
+     "guide", "nlm_y_k"),
+    ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
+                                      "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
+                                      "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
     ("--guard-confirm", "C", "ship with the guard's confirmation by hit point B at factor C "
                              "(GuardConfig.confirm; 0 = off)", "guard", "confirm"),
     ("--guard-peers", "M", "ship with the guard's speckle-field test: no outlier where M unsettled pixels of "
@@ -329,7 +337,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
            f"{2 * int(guide.nlm_radius) + 1} x {2 * int(guide.nlm_radius) + 1} px window)")
     images = {"oidn": f"OIDN's images of ~z^{guide.source} and ~y",
               "nlm": f"{nlm}'s images of ~z^{guide.source} and ~y",
-              "nlm_source": f"{nlm}'s image of ~z^{guide.source} and OIDN's of ~y"}[guide.denoiser]
+              "nlm_source": f"{nlm}'s image of ~z^{guide.source} and OIDN's of ~y"
+              + (f" (NL-means' of ~y too from N = {guide.nlm_y_passes:g} passes)" if guide.nlm_y_passes else "")
+              }[guide.denoiser] + (f"; NL-means' k for ~y {guide.nlm_y_k:g}" if guide.nlm_y_k else "")
     mixed = (f"{images} mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}"
              + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "
@@ -368,7 +378,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                "left out of its low-pass and set to the inverse-variance mean of ~y and ~z^4"
                if guide.anchor_spikes else "")
             + (f", held where all five estimates are unsettled at {guide.anchor_free:g} (a photon speckle field) "
-               "in its range widened to the 5 x 5 medians of its ends" if guide.anchor_free else "")
+               "in its range widened to the 5 x 5 medians of its ends"
+               + (f" (not where ~z^4 reads at most {guide.anchor_free_dark:g} x the guard's floor x the image's "
+                  "scale: a dark pixel)" if guide.anchor_free_dark else "") if guide.anchor_free else "")
             + (f", what the final clamp took given back to the pixels around over a Gaussian of "
                f"{guide.redistribute:g} px, each within its own range" if guide.redistribute else "")
             + f"{chooser}; the Eq. 6 network is "

@@ -845,6 +845,71 @@ def test_envelope_anchor_free_leaves_the_range_only_in_a_speckle_field():
         envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, anchor_free=0.5))
 
 
+def test_anchor_free_dark_keeps_a_negligible_photon_out_of_the_speckle_field():
+    """``anchor_free_dark`` D: a pixel whose ~z^4 caught a photon of negligible value (at most
+    D x the guard's floor x the image's scale) beside a bright region is dark, not a speckle:
+    its range is its own and the anchor cannot lift it towards the light (``holdout_n1024_s16``
+    ``0000_bright_emitters`` N = 16: all five estimates below 1e-8, reference 1.0, output 161
+    with D = 0). A real one-event speckle of the field stays free; D = 0 is the old rule."""
+    from ppmrecon.model.guide import envelope, speckle_field
+
+    h = w = 16
+    y = torch.zeros(1, 3, h, w)
+    z = torch.zeros(1, 4, 3, h, w)
+    var = torch.zeros(1, 5, h, w)
+    y[...], z[...], var[...] = 100.0, 300.0, 1e6                # a bright field, unsettled (one event)
+    y[..., 8, 7], z[..., 8, 7], var[..., 8, 7] = 0.0, 0.0, 0.0   # in it: a dark pixel whose ~z^4
+    z[:, 3, :, 8, 7], var[:, 4, 8, 7] = 1e-8, 1e-16             # caught a negligible photon
+    y[..., 4, 4], z[..., 4, 4], var[..., 4, 4] = 0.0, 0.0, 0.0   # and a real one-event speckle
+    z[:, 3, :, 4, 4], var[:, 4, 4, 4] = 5.0, 25.0
+    scale = 150.0
+    old = speckle_field(y, z, var, 0.5)[0, 0]
+    new = speckle_field(y, z, var, 0.5, 0.1 * 1e-3 * scale)[0, 0]
+    assert bool(old[8, 7]) and not bool(new[8, 7]) and bool(new[4, 4]) and bool(old[4, 4])
+    guide = torch.cat([torch.full((1, 3, h, w), 150.0), torch.full((1, 1, h, w), 1.0)], 1)
+    plain = replace(ENVELOPE, anchor_source=4, anchor_free=0.5)
+    lifted = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, plain, scale, variances=var)
+    kept = envelope(guide, y, z, var[:, 4:], DEFAULT_ON, replace(plain, anchor_free_dark=0.1), scale, variances=var)
+    assert float(lifted[0, :, 8, 7].max()) > 1.0                 # the light's median let it up
+    assert float(kept[0, :, 8, 7].max()) <= 1e-8
+    assert torch.equal(kept[0, :, 4, 4], lifted[0, :, 4, 4]) and float(kept[0, :, 4, 4].max()) > 5.0
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="anchor_free_dark"):
+            replace(plain, anchor_free_dark=bad)
+
+
+def test_nlm_y_passes_gates_nl_means_for_y_by_passes(tmp_path, capsys):
+    """GuideConfig.nlm_y_passes M with denoiser nlm_source: a render of M passes or more has
+    ~y denoised by NL-means too (exactly as denoiser nlm), one of fewer by OIDN (exactly as
+    nlm_source alone); ``nlm_y_k`` sets NL-means' k for ~y (0 = nlm_k). The flags agree with
+    the API, the header names them; negative or not a number: one clear line, exit 2."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=43)
+    # variances about the pixels' spread (std 1.2), so that NL-means' k matters
+    buf = replace(buf, variances=np.ones_like(buf.variances), header=dict(buf.header, **{B.H_PASSES: 32}))
+    on = replace(ENVELOPE, denoiser="nlm_source", y_weight=2.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    source_only = denoise(buf, model).rgb
+    both = denoise(buf, model, guide=replace(on, denoiser="nlm")).rgb
+    assert not np.array_equal(source_only, both)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, nlm_y_passes=32.0)).rgb, both)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, nlm_y_passes=33.0)).rgb, source_only)
+    y_k = denoise(buf, model, guide=replace(on, nlm_y_passes=32.0, nlm_y_k=1.0)).rgb
+    assert not np.array_equal(y_k, both)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, denoiser="nlm", nlm_y_k=1.0)).rgb, y_k)
+    args = _envelope_cli(tmp_path, buf) + ["--guide-denoiser", "nlm_source", "--guide-y-weight", "2"]
+    assert denoise_main(args + ["--guide-nlm-y-passes", "16", "--guide-nlm-y-k", "1",
+                                "-o", str(tmp_path / "cli.exr")]) == 0
+    image, header = B.read_rgb(tmp_path / "cli.exr")
+    assert "oidn(y, fast) nlm(y from N=16) k(y)=1 " in header["ppmrecon.guide"]
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_denoiser="nlm_source", guide_y_weight=2.0,
+                                                   guide_nlm_y_passes=16, guide_nlm_y_k=1.0), image)
+    for flag in ("--guide-nlm-y-passes", "--guide-nlm-y-k", "--guide-anchor-free-dark"):
+        _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
+
+
 def test_redistribute_gives_back_the_clamps_loss_within_each_pixels_range():
     """A smooth level clamped into a speckle field's ranges loses energy; ``redistribute``
     gives part of it back to the pixels with room, never outside their own ``[lo, hi]``,

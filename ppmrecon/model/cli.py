@@ -120,6 +120,16 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-nlm-radius", "R", "nlm_radius",
      f"with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number 1..{NLM_MAX_RADIUS} "
      "(patches of half width R // 2; the time grows as R^2; default: the checkpoint's, 3)"),
+    ("--guide-nlm-y-passes", "M", "nlm_y_passes",
+     "with --guide-denoiser nlm_source: renders of at least M passes denoise ~y by NL-means too, OIDN below "
+     "(OIDN smooths detail a many-pass ~y resolves); 0 = never (default: the checkpoint's; the shipped model's 512)"),
+    ("--guide-nlm-y-k", "K", "nlm_y_k",
+     "NL-means' tolerance K for ~y (with nlm, or nlm_source and --guide-nlm-y-passes); 0 = --guide-nlm-k "
+     "(default: the checkpoint's; the shipped model's 1)"),
+    ("--guide-anchor-free-dark", "D", "anchor_free_dark",
+     "with --guide-anchor-free: a pixel whose widest estimate ~z^4 reads at most D x the guard's floor x the "
+     "image's scale is dark, not a photon speckle, and keeps its own range; 0 = only an empty ~z^4 (default: the "
+     "checkpoint's; the shipped model's 0.1)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -418,6 +428,8 @@ def _guide_header(guide: GuideConfig) -> str:
     ystep = bool(guide.cascade and guide.cascade_y and guide.mode in ENVELOPE_MODES)
     spike += f" ystep={guide.cascade_y:g}" if ystep else ""
     spike += f" up={guide.cascade_y_up:g}" if ystep and guide.cascade_y_up else ""
+    spike += (f" dark={guide.anchor_free_dark:g}" if guide.anchor_free and guide.anchor_free_dark
+              and guide.mode in ENVELOPE_MODES else "")
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
@@ -428,7 +440,10 @@ def _guide_header(guide: GuideConfig) -> str:
     uses_y = bool(guide.y_weight or guide.cross)
     source = {"oidn": f"oidn(z{guide.source}, {guide.quality})",
               "nlm": f"{nlm}(z{guide.source}{', y' if uses_y else ''})",
-              "nlm_source": f"{nlm}(z{guide.source})" + (f" oidn(y, {guide.quality})" if uses_y else "")}[guide.denoiser]
+              "nlm_source": f"{nlm}(z{guide.source})" + (f" oidn(y, {guide.quality})" if uses_y else "")
+              + (f" nlm(y from N={guide.nlm_y_passes:g})" if uses_y and guide.nlm_y_passes else "")}[guide.denoiser]
+    if uses_y and guide.nlm_y_k and guide.denoiser != "oidn":
+        source += f" k(y)={guide.nlm_y_k:g}"
     return (f"{source} {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 

@@ -94,7 +94,10 @@ the best input lower on all six (literature to N = 1024 0.676 -> 0.596, at N = 1
 ratio lower on five (``holdout_n1024_s17`` 0.829 -> 0.864 the exception). A 7 x 7 window
 (``nlm_radius`` 3) did about as well as 11 x 11 and 15 x 15 (``guide_s20_nlmr_*``,
 ``guide_s20_nlm_*``) and costs what the OIDN call it replaces does (0.5 s at 1280x720 on two
-cores: the whole denoise stays at 1.86x OIDN's time).
+cores: the whole denoise stays at 1.86x OIDN's time). From 512 passes (``nlm_y_passes``; k = 1,
+``nlm_y_k``) NL-means denoises ~y too: at N = 1024 OIDN's image of ~y smooths what ~y resolves
+(literature scenes 0.770 -> 0.710 of the best input, 8x8 1.344 -> 1.084; at N <= 256 OIDN's was as
+good or better: ``benchmarks/results/guide_s21_ny_*``).
 
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
@@ -176,6 +179,9 @@ _NUMBERS = {
     "nlm_k": (">0", "a factor > 0"),
     "nlm_radius": (">0", f"a whole number of pixels, 1..{NLM_MAX_RADIUS}"),
     "cascade_y_up": (">=0", "a pass count >= 0 (0 = up and down at every N)"),
+    "nlm_y_passes": (">=0", "a pass count >= 0 (0 = never)"),
+    "nlm_y_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
+    "anchor_free_dark": (">=0", "a factor >= 0 (0 = an empty ~z^4 only)"),
 }
 
 
@@ -317,6 +323,15 @@ class GuideConfig:
     #: stepping up too); the bias the step is for lies the other way (wide kernels beside a
     #: bright caustic read high)
     cascade_y_up: float = 0.0
+    #: with denoiser "nlm_source": renders of at least this many passes denoise ~y by NL-means
+    #: too (OIDN below); 0 = never (checkpoints without it read as 0)
+    nlm_y_passes: float = 0.0
+    #: NL-means' k for ~y (with "nlm", or "nlm_source" and ``nlm_y_passes``); 0 = ``nlm_k``
+    nlm_y_k: float = 0.0
+    #: with ``anchor_free``: a pixel whose widest estimate ~z^4 reads at most this factor x the
+    #: guard's floor x the image's scale is dark, not a speckle (:func:`speckle_field`); 0 = only
+    #: an empty ~z^4 (checkpoints without it read as 0)
+    anchor_free_dark: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -497,6 +512,14 @@ def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, r
     return spikes
 
 
+def dark_level(cfg: GuideConfig, guard: GuardConfig, scale: torch.Tensor | float) -> torch.Tensor | float:
+    """:func:`speckle_field`'s ``dark``: ``cfg.anchor_free_dark`` x the guard's floor x
+    ``scale`` (:data:`.guard.RELATIVE_FLOOR` with the guard off)."""
+    from .guard import RELATIVE_FLOOR
+
+    return cfg.anchor_free_dark * (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale
+
+
 def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: GuardConfig,
                  scale: torch.Tensor | float) -> torch.Tensor | None:
     """:func:`lone_y_spikes` with the guide's factor ``cfg.y_spike`` and eps = the guard's
@@ -608,13 +631,13 @@ class GuideImages(NamedTuple):
 
 def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
                  scale: float, floor: float, variances: np.ndarray | None = None,
-                 need_y: bool = False) -> GuideImages:
+                 need_y: bool = False, passes: float | None = None) -> GuideImages:
     """The guide ``g`` of a whole image and OIDN's images it is made of. ``estimates``
     (5, H, W, 3) are the (guarded) inputs; ``scale`` the image's radiance scale. OIDN
     denoises the source estimate with its B-only spikes removed (:func:`despike`); with
     ``cross``, ``y_weight`` or ``need_y`` it also denoises ~y, once. ``variances`` (5, H, W),
-    the inputs' variances of the mean, are needed with ``y_weight`` (:func:`y_share`).
-    Whole images only: OIDN has no halo."""
+    the inputs' variances of the mean, are needed with ``y_weight`` (:func:`y_share`);
+    ``passes``, the render's, decides ``nlm_y_passes``. Whole images only: OIDN has no halo."""
     mix_y = bool(cfg.y_weight and cfg.source)
     if mix_y and variances is None:
         raise ValueError("guide_images: the guide's y_weight needs the inputs' variances")
@@ -623,17 +646,20 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     if cfg.denoiser != "oidn" and variances is None:
         raise ValueError("guide_images: the NL-means guide needs the inputs' variances")
 
-    def denoised(image: torch.Tensor, index: int, nlm: bool) -> torch.Tensor:
-        """OIDN's or NL-means' image of ``image`` (3, H, W), estimate ``index``'s variances."""
+    def denoised(image: torch.Tensor, index: int, nlm: bool, k: float) -> torch.Tensor:
+        """OIDN's or NL-means' (tolerance ``k``) image of ``image`` (3, H, W), estimate
+        ``index``'s variances."""
         if nlm:
             variance = torch.from_numpy(np.ascontiguousarray(variances[index], np.float32))
-            return nlm_image(image, variance, cfg.nlm_k, *nlm_window(cfg))
+            return nlm_image(image, variance, k, *nlm_window(cfg))
         return torch.from_numpy(oidn_image(image.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
 
-    g = denoised(source, cfg.source, cfg.denoiser != "oidn")
+    g = denoised(source, cfg.source, cfg.denoiser != "oidn", cfg.nlm_k)
     g_source, gy = g, None
     if cfg.source and (cfg.cross or mix_y or need_y):
-        gy = denoised(est[0], 0, cfg.denoiser == "nlm")
+        nlm_y = cfg.denoiser == "nlm" or (cfg.denoiser == "nlm_source" and bool(cfg.nlm_y_passes)
+                                          and passes is not None and passes >= cfg.nlm_y_passes)
+        gy = denoised(est[0], 0, nlm_y, cfg.nlm_y_k or cfg.nlm_k)
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
             # a rare path); neither guide is to be trusted, their geometric mean lies between
@@ -1017,7 +1043,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
                                    cfg.anchor_window, cfg.anchor_settled)
         if spikes is not None:
             held = torch.where(spikes, spike_estimate(y, z[:, -1], *spike_variances), held)
-        free = aim.free if aim is not None else speckle_field(y, z, variances, cfg.anchor_free)
+        free = aim.free if aim is not None else speckle_field(y, z, variances, cfg.anchor_free,
+                                                              dark_level(cfg, guard, scale))
         if free is not None:
             lo, hi = speckle_range(lo, hi, free)
         anchored, held = held, torch.minimum(torch.maximum(held, lo), hi)
@@ -1059,12 +1086,17 @@ def redistribute(anchored: torch.Tensor, held: torch.Tensor, lo: torch.Tensor, h
     return held + lift - drop
 
 
-def speckle_field(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | None, r: float) -> torch.Tensor | None:
+def speckle_field(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | None, r: float,
+                  dark: torch.Tensor | float = 0.0) -> torch.Tensor | None:
     """Where every one of a pixel's five estimates is unsettled at ``r`` (sqrt(V)/mean >= r,
-    or a mean of 0: :func:`.guard.settled_mask`) while the widest, ~z^4, caught some photon,
-    (B, 1, H, W) bool; None for r = 0 (off). y (B, 3, H, W), z (B, 4, 3, H, W),
-    ``variances`` (B, 5, H, W). A pixel whose widest gather stayed empty for N passes is
-    dark, not a speckle (``0178_indirect``: a black region beside a bright one).
+    or a mean of 0: :func:`.guard.settled_mask`) while the widest, ~z^4, caught more than
+    ``dark`` (a float or (B, 1, 1, 1)), (B, 1, H, W) bool; None for r = 0 (off). y (B, 3, H,
+    W), z (B, 4, 3, H, W), ``variances`` (B, 5, H, W). A pixel whose widest gather stayed
+    empty for N passes is dark, not a speckle (``0178_indirect``: a black region beside a
+    bright one); so is one whose ~z^4 caught only a negligible photon (``dark`` > 0:
+    ``holdout_n1024_s16`` ``0000_bright_emitters`` N = 16, pixel (113, 53) beside a light:
+    all five estimates below 1e-8, reference 1.0, the range widened to the light's 5 x 5
+    median let the anchor lift it to 161).
 
     Such a pixel lies in a field of photon speckles (the literature ``cornell-box``'s glossy
     floor at N = 64: most pixels' five estimates are 0 or one event), where the range of its
@@ -1079,7 +1111,7 @@ def speckle_field(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | No
         return None
     if variances is None:
         raise ValueError("the guide's anchor_free needs the five variances of the mean")
-    free = z[:, -1].amax(1, keepdim=True) > 0
+    free = z[:, -1].amax(1, keepdim=True) > dark
     free &= ~settled_mask(y.mean(1, keepdim=True), variances[:, :1], r)
     free &= ~settled_mask(rgb_mean(z, 2), variances[:, 1:], r).any(1, keepdim=True)
     return free

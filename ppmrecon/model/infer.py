@@ -35,8 +35,8 @@ from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
 from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
 from .chooser import Chooser, band, candidates, features
-from .guide import (ENVELOPE_MODES, Aim, GuideConfig, GuideImages, cascade_aim, envelope, guide_images, guided_logits,
-                    speckle_field, y_spike_mask, z_spike_mask)
+from .guide import (ENVELOPE_MODES, Aim, GuideConfig, GuideImages, cascade_aim, dark_level, envelope, guide_images,
+                    guided_logits, speckle_field, y_spike_mask, z_spike_mask)
 from .guide import planes as guide_planes_of
 from .kpn import KPN
 
@@ -168,7 +168,7 @@ def denoise(buf: BufferFile, model: KPN, tile: int | None = None, device: str | 
             raise UsageError("guide mode 'chooser': this model has no chooser "
                              "(train one with `ppmrecon-train chooser`, or use --guide-mode envelope)")
         scale = _scale(buf) if scale is None else scale
-        aim = buffer_aim(buf, guide, guard)
+        aim = buffer_aim(buf, guide, guard, scale)
         images, planes = buffer_guide_images(buf, guide, guard, scale, need_y=chooser is not None, aim=aim)
         result = buffer_envelope(buf, planes, guard, guide, device, None if chooser else progress, scale, aim)
         if chooser is None:
@@ -192,10 +192,11 @@ def buffer_guide(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
     return buffer_guide_images(buf, guide, guard, scale)[1]
 
 
-def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim | None:
+def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig, scale: float | None = None) -> Aim | None:
     """:func:`.guide.cascade_aim` of a whole (guarded) buffer file; None where the guide's
     cascade is off (or the guard, whose anchor width it takes, is), or the render has fewer
-    passes than its ``cascade_passes``; below ``cascade_y_up`` passes its step to ~y goes down only."""
+    passes than its ``cascade_passes``; below ``cascade_y_up`` passes its step to ~y goes down
+    only; ``scale``: the file's :func:`.guard.image_scale` when the caller has it already."""
     if not (guide.cascade and guide.mode in ENVELOPE_MODES and guard.enabled and guard.anchor > 0):
         return None
     passes = passes_of(buf)
@@ -208,7 +209,8 @@ def buffer_aim(buf: BufferFile, guide: GuideConfig, guard: GuardConfig) -> Aim |
     radii = torch.from_numpy(np.ascontiguousarray(buf.radii, np.float32))[None]
     y, z = est[:, 0], est[:, 1:]
     with torch.no_grad():
-        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free), y,
+        dark = dark_level(guide, guard, _scale(buf) if scale is None else scale) if guide.anchor_free_dark else 0.0
+        return cascade_aim(z, var, radii, guide, guard.anchor, speckle_field(y, z, var, guide.anchor_free, dark), y,
                            y_up=not (guide.cascade_y_up and passes < guide.cascade_y_up))
 
 
@@ -227,7 +229,7 @@ def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
         estimates = np.stack((estimates[0], aim.t[0].permute(1, 2, 0).numpy()))
         variances = np.stack((variances[0], aim.variance[0, 0].numpy()))
         chosen = replace(guide, source=1)
-    images = guide_images(estimates, buf.albedo, buf.normal, chosen, scale, floor, variances, need_y)
+    images = guide_images(estimates, buf.albedo, buf.normal, chosen, scale, floor, variances, need_y, passes_of(buf))
     return images, guide_planes_of(images.guide, guide, scale, floor)
 
 
@@ -304,7 +306,7 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     m = guide.anchor_source
     wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
     passes = passes_of(buf) if guide.terms_passes else None
-    if (guide.y_spike or guide.anchor_spikes or guide.z_spike) and scale is None:
+    if (guide.y_spike or guide.anchor_spikes or guide.z_spike or guide.anchor_free_dark) and scale is None:
         scale = _scale(buf)
     spike_variances = (variance_of(0), variance_of(len(buf.variances) - 1)) if guide.anchor_spikes else None
     variances = (torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None].to(device)
