@@ -145,7 +145,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guard: str = "on", guide: str = "on", guide_quality: str | None = None,
             guide_denoiser: str | None = None, guide_nlm_k: float | None = None,
             guide_nlm_radius: float | None = None, guide_nlm_y_passes: float | None = None,
-            guide_nlm_y_k: float | None = None, guide_anchor_free_dark: float | None = None,
+            guide_nlm_y_k: float | None = None, guide_nlm_joint_passes: float | None = None,
+            guide_nlm_joint_k: float | None = None, guide_anchor_free_dark: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -169,8 +170,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``fast``; None: the model's); ``guide_denoiser``: what denoises the guide's images,
     ``oidn``, ``nlm`` (variance-normalised NL-means for the source and ~y) or ``nlm_source``
     (for the source, OIDN for ~y; None: the model's), as ``--guide-denoiser``, with
-    ``guide_nlm_k`` / ``guide_nlm_radius`` / ``guide_nlm_y_passes`` / ``guide_nlm_y_k`` as
-    ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k``;
+    ``guide_nlm_k`` / ``guide_nlm_radius`` / ``guide_nlm_y_passes`` / ``guide_nlm_y_k`` /
+    ``guide_nlm_joint_passes`` / ``guide_nlm_joint_k`` as ``--guide-nlm-k`` / ``--guide-nlm-radius``
+    / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` / ``--guide-nlm-joint-passes`` /
+    ``--guide-nlm-joint-k``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -247,7 +250,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "cascade_passes": guide_cascade_passes, "cascade_y": guide_cascade_y,
                                          "cascade_y_up": guide_cascade_y_up, "nlm_k": guide_nlm_k,
                                          "nlm_radius": guide_nlm_radius, "nlm_y_passes": guide_nlm_y_passes,
-                                         "nlm_y_k": guide_nlm_y_k, "anchor_free_dark": guide_anchor_free_dark},
+                                         "nlm_y_k": guide_nlm_y_k, "nlm_joint_passes": guide_nlm_joint_passes,
+                                         "nlm_joint_k": guide_nlm_joint_k,
+                                         "anchor_free_dark": guide_anchor_free_dark},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

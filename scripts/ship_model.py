@@ -93,6 +93,11 @@ RESHIP_NUMBERS = (
      "guide", "nlm_y_passes"),
     ("--guide-nlm-y-k", "K", "ship with NL-means' tolerance K for ~y (GuideConfig.nlm_y_k; 0 = nlm_k)",
      "guide", "nlm_y_k"),
+    ("--guide-nlm-joint-passes", "M", "ship with renders of at least M passes denoising the source and ~y by one "
+                                      "NL-means with joint weights (GuideConfig.nlm_joint_passes; 0 = never)",
+     "guide", "nlm_joint_passes"),
+    ("--guide-nlm-joint-k", "K", "ship with the joint NL-means' tolerance K (GuideConfig.nlm_joint_k; 0 = nlm_k)",
+     "guide", "nlm_joint_k"),
     ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
                                       "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
                                       "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
@@ -340,6 +345,11 @@ def shipped_row(guide: GuideConfig) -> list[str]:
               "nlm_source": f"{nlm}'s image of ~z^{guide.source} and OIDN's of ~y"
               + (f" (NL-means' of ~y too from N = {guide.nlm_y_passes:g} passes)" if guide.nlm_y_passes else "")
               }[guide.denoiser] + (f"; NL-means' k for ~y {guide.nlm_y_k:g}" if guide.nlm_y_k else "")
+    if guide.nlm_joint_passes and guide.denoiser != "oidn":
+        images += (f"; from N = {guide.nlm_joint_passes:g} passes the source and ~y denoised together by one "
+                   f"NL-means with joint weights (k = {guide.nlm_joint_k or guide.nlm_k:g}"
+                   + (f", {guide.nlm_y_k:g} from N = {guide.nlm_y_passes:g}" if guide.nlm_y_passes and guide.nlm_y_k
+                      else "") + ")")
     mixed = (f"{images} mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}"
              + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "

@@ -878,6 +878,26 @@ def test_anchor_free_dark_keeps_a_negligible_photon_out_of_the_speckle_field():
             replace(plain, anchor_free_dark=bad)
 
 
+def _nlm_source_flags_agree(tmp_path, capsys, buf, settings: dict[str, str], header_part: str,
+                            refused: tuple[str, ...] = ()) -> None:
+    """``ppmrecon-denoise --guide-denoiser nlm_source --guide-y-weight 2`` with the NL-means
+    ``settings`` (flag -> value) writes what ``ppmrecon.denoise`` returns with the same keywords,
+    its guide header holds ``header_part``; each setting's flag, and each of ``refused``,
+    refuses negative and NaN values (:func:`_refuses_negative_and_nan`)."""
+    import ppmrecon
+
+    args = _envelope_cli(tmp_path, buf) + ["--guide-denoiser", "nlm_source", "--guide-y-weight", "2"]
+    chosen = [item for pair in settings.items() for item in pair]
+    assert denoise_main(args + chosen + ["-o", str(tmp_path / "cli.exr")]) == 0
+    image, header = B.read_rgb(tmp_path / "cli.exr")
+    assert header_part in header["ppmrecon.guide"]
+    keywords = {flag[2:].replace("-", "_"): float(value) for flag, value in settings.items()}
+    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_denoiser="nlm_source", guide_y_weight=2.0, **keywords), image)
+    for flag in (*settings, *refused):
+        _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
+
+
 def test_nlm_y_passes_gates_nl_means_for_y_by_passes(tmp_path, capsys):
     """GuideConfig.nlm_y_passes M with denoiser nlm_source: a render of M passes or more has
     ~y denoised by NL-means too (exactly as denoiser nlm), one of fewer by OIDN (exactly as
@@ -898,16 +918,60 @@ def test_nlm_y_passes_gates_nl_means_for_y_by_passes(tmp_path, capsys):
     y_k = denoise(buf, model, guide=replace(on, nlm_y_passes=32.0, nlm_y_k=1.0)).rgb
     assert not np.array_equal(y_k, both)
     np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, denoiser="nlm", nlm_y_k=1.0)).rgb, y_k)
-    args = _envelope_cli(tmp_path, buf) + ["--guide-denoiser", "nlm_source", "--guide-y-weight", "2"]
-    assert denoise_main(args + ["--guide-nlm-y-passes", "16", "--guide-nlm-y-k", "1",
-                                "-o", str(tmp_path / "cli.exr")]) == 0
-    image, header = B.read_rgb(tmp_path / "cli.exr")
-    assert "oidn(y, fast) nlm(y from N=16) k(y)=1 " in header["ppmrecon.guide"]
-    np.testing.assert_array_equal(ppmrecon.denoise(buf, tmp_path / "m.pt", guide_mode="envelope",
-                                                   guide_denoiser="nlm_source", guide_y_weight=2.0,
-                                                   guide_nlm_y_passes=16, guide_nlm_y_k=1.0), image)
-    for flag in ("--guide-nlm-y-passes", "--guide-nlm-y-k", "--guide-anchor-free-dark"):
-        _refuses_negative_and_nan(tmp_path, capsys, buf, args, flag)
+    _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-nlm-y-passes": "16", "--guide-nlm-y-k": "1"},
+                            "oidn(y, fast) nlm(y from N=16) k(y)=1 ", ("--guide-anchor-free-dark",))
+
+
+def test_nlm_image_of_several_images_shares_one_set_of_weights():
+    """nlm_image of G stacked images: one image alone is what it was; two copies of one image
+    (each with its own variance) give that image twice, with the weights of the mean distance
+    (the same as one image whose normalised distance is that mean: here, equal variances);
+    where a second image carries an edge the first one's noise hides, the joint filter keeps
+    the first image's edge too."""
+    from ppmrecon.model.guide import nlm_image
+
+    gen = torch.Generator().manual_seed(11)
+    a = torch.rand(3, 20, 20, generator=gen)
+    va = torch.full((20, 20), 0.02)
+    alone = nlm_image(a, va, 0.7)
+    both = nlm_image(torch.cat([a, a]), torch.stack([va, va]), 0.7)
+    torch.testing.assert_close(both[:3], alone, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(both[3:], alone, rtol=1e-5, atol=1e-6)
+    step = torch.zeros(3, 20, 20)
+    step[..., 10:] = 1.0
+    noisy = step + 0.5 * torch.randn(3, 20, 20, generator=gen)       # the edge lies within its noise
+    clean = step + 0.01 * torch.randn(3, 20, 20, generator=gen)
+    own = nlm_image(noisy, torch.full((20, 20), 0.25), 0.7)
+    joint = nlm_image(torch.cat([noisy, clean]), torch.stack([torch.full((20, 20), 0.25),
+                                                              torch.full((20, 20), 1e-4)]), 0.7)[:3]
+    def contrast(x):
+        return float(x[..., 12:].mean() - x[..., :8].mean())
+    assert contrast(joint) > 0.9 and contrast(own) < contrast(joint)
+
+
+def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):
+    """GuideConfig.nlm_joint_passes M: a render of M passes or more has the source and ~y
+    denoised by one joint NL-means (k = nlm_joint_k, from nlm_y_passes nlm_y_k), one of fewer
+    as without it; the flags agree with the API and the header names them; negative or not a
+    number: one clear line, exit 2."""
+    import ppmrecon
+
+    buf = make_buffer(24, 24, seed=47)
+    buf = replace(buf, variances=np.ones_like(buf.variances), header=dict(buf.header, **{B.H_PASSES: 32}))
+    on = replace(ENVELOPE, denoiser="nlm_source", y_weight=2.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    plain = denoise(buf, model).rgb
+    joint = denoise(buf, model, guide=replace(on, nlm_joint_passes=32.0, nlm_joint_k=0.7)).rgb
+    assert not np.array_equal(plain, joint)
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, nlm_joint_passes=33.0, nlm_joint_k=0.7)).rgb,
+                                  plain)
+    many = denoise(buf, model, guide=replace(on, nlm_joint_passes=32.0, nlm_joint_k=0.7, nlm_y_passes=32.0,
+                                             nlm_y_k=1.0)).rgb
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, nlm_joint_passes=32.0, nlm_joint_k=1.0)).rgb,
+                                  many)
+    assert not np.array_equal(many, joint)
+    _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-nlm-joint-passes": "16", "--guide-nlm-joint-k": "0.7"},
+                            " joint(from N=16, k=0.7) ")
 
 
 def test_redistribute_gives_back_the_clamps_loss_within_each_pixels_range():

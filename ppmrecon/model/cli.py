@@ -126,6 +126,13 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-nlm-y-k", "K", "nlm_y_k",
      "NL-means' tolerance K for ~y (with nlm, or nlm_source and --guide-nlm-y-passes); 0 = --guide-nlm-k "
      "(default: the checkpoint's; the shipped model's 1)"),
+    ("--guide-nlm-joint-passes", "M", "nlm_joint_passes",
+     "with --guide-denoiser nlm or nlm_source, where the guide uses ~y: renders of at least M passes denoise the "
+     "source and ~y by one NL-means with joint weights (their noise is independent); 0 = never (default: the "
+     "checkpoint's; the shipped model's 16)"),
+    ("--guide-nlm-joint-k", "K", "nlm_joint_k",
+     "the joint NL-means' tolerance K below --guide-nlm-y-passes (from there --guide-nlm-y-k's); 0 = --guide-nlm-k "
+     "(default: the checkpoint's; the shipped model's 0.7)"),
     ("--guide-anchor-free-dark", "D", "anchor_free_dark",
      "with --guide-anchor-free: a pixel whose widest estimate ~z^4 reads at most D x the guard's floor x the "
      "image's scale is dark, not a photon speckle, and keeps its own range; 0 = only an empty ~z^4 (default: the "
@@ -444,6 +451,8 @@ def _guide_header(guide: GuideConfig) -> str:
               + (f" nlm(y from N={guide.nlm_y_passes:g})" if uses_y and guide.nlm_y_passes else "")}[guide.denoiser]
     if uses_y and guide.nlm_y_k and guide.denoiser != "oidn":
         source += f" k(y)={guide.nlm_y_k:g}"
+    if uses_y and guide.nlm_joint_passes and guide.denoiser != "oidn":
+        source += f" joint(from N={guide.nlm_joint_passes:g}, k={guide.nlm_joint_k or guide.nlm_k:g})"
     return (f"{source} {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 

@@ -94,10 +94,12 @@ the best input lower on all six (literature to N = 1024 0.676 -> 0.596, at N = 1
 ratio lower on five (``holdout_n1024_s17`` 0.829 -> 0.864 the exception). A 7 x 7 window
 (``nlm_radius`` 3) did about as well as 11 x 11 and 15 x 15 (``guide_s20_nlmr_*``,
 ``guide_s20_nlm_*``) and costs what the OIDN call it replaces does (0.5 s at 1280x720 on two
-cores: the whole denoise stays at 1.86x OIDN's time). From 512 passes (``nlm_y_passes``; k = 1,
-``nlm_y_k``) NL-means denoises ~y too: at N = 1024 OIDN's image of ~y smooths what ~y resolves
-(literature scenes 0.770 -> 0.710 of the best input, 8x8 1.344 -> 1.084; at N <= 256 OIDN's was as
-good or better: ``benchmarks/results/guide_s21_ny_*``).
+cores: the whole denoise stays at 1.86x OIDN's time). From 16 passes (``nlm_joint_passes``; k =
+0.7, ``nlm_joint_k``, and 1 from ``nlm_y_passes`` = 512 passes) the source and ~y are denoised
+together by one NL-means with joint weights: their noise is independent, so a difference both
+show is signal (literature scenes 0.584 -> 0.539 of the best input, ``holdout_s16`` 0.430 ->
+0.414; ``benchmarks/results/guide_s21_final_*``), and it replaces the OIDN call on ~y (1.61x OIDN's
+time in all).
 
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
@@ -182,6 +184,8 @@ _NUMBERS = {
     "nlm_y_passes": (">=0", "a pass count >= 0 (0 = never)"),
     "nlm_y_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
     "anchor_free_dark": (">=0", "a factor >= 0 (0 = an empty ~z^4 only)"),
+    "nlm_joint_passes": (">=0", "a pass count >= 0 (0 = never)"),
+    "nlm_joint_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
 }
 
 
@@ -326,8 +330,16 @@ class GuideConfig:
     #: with denoiser "nlm_source": renders of at least this many passes denoise ~y by NL-means
     #: too (OIDN below); 0 = never (checkpoints without it read as 0)
     nlm_y_passes: float = 0.0
-    #: NL-means' k for ~y (with "nlm", or "nlm_source" and ``nlm_y_passes``); 0 = ``nlm_k``
+    #: NL-means' k for ~y (with "nlm", or "nlm_source" and ``nlm_y_passes``; from
+    #: ``nlm_y_passes`` passes also the joint filter's); 0 = ``nlm_k``
     nlm_y_k: float = 0.0
+    #: with denoiser "nlm" or "nlm_source", where the guide uses ~y: renders of at least this
+    #: many passes denoise the source and ~y by one NL-means with joint weights (:func:`nlm_image`
+    #: of both; their noise is independent, so the patch distance has twice the evidence);
+    #: 0 = never (checkpoints without it read as 0)
+    nlm_joint_passes: float = 0.0
+    #: the joint filter's k (below ``nlm_y_passes``); 0 = ``nlm_k``
+    nlm_joint_k: float = 0.0
     #: with ``anchor_free``: a pixel whose widest estimate ~z^4 reads at most this factor x the
     #: guard's floor x the image's scale is dark, not a speckle (:func:`speckle_field`); 0 = only
     #: an empty ~z^4 (checkpoints without it read as 0)
@@ -420,33 +432,39 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
               patch: int = 1) -> torch.Tensor:
     """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
     Zwicker 2012 ("Adaptive Rendering with Non-Local Means Filtering", their per-pixel distance
-    with the variance-cancellation term, alpha = 1): colour (3, H, W), ``variance`` (H, W) its
-    variance of the mean,
+    with the variance-cancellation term, alpha = 1): colour (3 G, H, W), G images of R, G, B,
+    ``variance`` (G, H, W) (or (H, W) for one image) each one's variance of the mean,
 
-        d^2(p, q) = box_f [ (|u_p - u_q|^2 - (V_p + min(V_p, V_q))) / (eps + k^2 (V_p + V_q)) ]
+        d^2_g(p, q) = (|u_p - u_q|^2 - (V_p + min(V_p, V_q))) / (eps + k^2 (V_p + V_q))
+        d^2(p, q) = box_f [ mean_g d^2_g(p, q) ]
         out_p = sum_q w_pq u_q / sum_q w_pq,   w_pq = exp(-max(0, d^2(p, q)))
 
     over a (2 radius + 1)^2 window, |.|^2 the mean over R, G, B, box_f the mean over a
     (2 patch + 1)^2 patch (cut at the image's edges). Where the noise is small against the
     image's own differences the weights vanish and the image is kept; OIDN assumes noise and
-    smooths detail instead. Memory-bound: the buffers are reused across the window's offsets."""
+    smooths detail instead. With G > 1 the images share one set of weights (a joint filter:
+    images of independent noise, ~y and the guide's source, each denoised with the evidence
+    of both). Memory-bound: the buffers are reused across the window's offsets."""
+    groups = 1 if variance.dim() == 2 else variance.shape[0]
     u = colour[None].float().contiguous()
-    v = variance[None, None].float().clamp(min=0.0)
+    v = variance.reshape(1, groups, *variance.shape[-2:]).float().clamp(min=0.0)
     height, width = u.shape[-2:]
     r = radius
     pad_u = torch.nn.functional.pad(u, (r, r, r, r), mode="replicate")
     pad_v = torch.nn.functional.pad(v, (r, r, r, r), mode="replicate")
-    num, den = torch.zeros_like(u), torch.zeros_like(v)
+    num, den = torch.zeros_like(u), torch.zeros_like(v[:, :1])
     diff, dist, shared, scale = torch.empty_like(u), torch.empty_like(v), torch.empty_like(v), torch.empty_like(v)
+    joint = torch.empty_like(den)
     tiny = torch.finfo(torch.float32).tiny
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
             uq, vq = pad_u[..., dy:dy + height, dx:dx + width], pad_v[..., dy:dy + height, dx:dx + width]
             torch.sub(u, uq, out=diff).square_()
-            torch.sum(diff, 1, keepdim=True, out=dist).mul_(1.0 / 3.0)
+            torch.sum(diff.view(1, groups, 3, height, width), 2, out=dist).mul_(1.0 / 3.0)
             dist.sub_(torch.minimum(v, vq, out=shared).add_(v))                 # - (V_p + min(V_p, V_q))
             dist.div_(torch.add(v, vq, out=scale).mul_(k * k).add_(tiny))
-            w = torch.nn.functional.avg_pool2d(dist, 2 * patch + 1, stride=1, padding=patch,
+            d = dist if groups == 1 else torch.mean(dist, 1, keepdim=True, out=joint)
+            w = torch.nn.functional.avg_pool2d(d, 2 * patch + 1, stride=1, padding=patch,
                                                count_include_pad=False)
             # weights below e^-NLM_CUT are set to 0 exactly: subnormal products otherwise slow
             # the loop down 1.3-1.7x on CPUs (measured at 1280x720)
@@ -646,20 +664,33 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     if cfg.denoiser != "oidn" and variances is None:
         raise ValueError("guide_images: the NL-means guide needs the inputs' variances")
 
+    def nlm_of(images: list[torch.Tensor], indices: list[int], k: float) -> torch.Tensor:
+        """NL-means (tolerance ``k``) of ``images`` (each (3, H, W)) with one set of weights,
+        estimates ``indices``' variances; (3 len(images), H, W)."""
+        variance = torch.from_numpy(np.ascontiguousarray(variances[indices], np.float32))
+        return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg))
+
     def denoised(image: torch.Tensor, index: int, nlm: bool, k: float) -> torch.Tensor:
         """OIDN's or NL-means' (tolerance ``k``) image of ``image`` (3, H, W), estimate
         ``index``'s variances."""
         if nlm:
-            variance = torch.from_numpy(np.ascontiguousarray(variances[index], np.float32))
-            return nlm_image(image, variance, k, *nlm_window(cfg))
+            return nlm_of([image], [index], k)
         return torch.from_numpy(oidn_image(image.permute(1, 2, 0).numpy(), albedo, normal, cfg.quality)).permute(2, 0, 1)
 
-    g = denoised(source, cfg.source, cfg.denoiser != "oidn", cfg.nlm_k)
-    g_source, gy = g, None
-    if cfg.source and (cfg.cross or mix_y or need_y):
-        nlm_y = cfg.denoiser == "nlm" or (cfg.denoiser == "nlm_source" and bool(cfg.nlm_y_passes)
-                                          and passes is not None and passes >= cfg.nlm_y_passes)
-        gy = denoised(est[0], 0, nlm_y, cfg.nlm_y_k or cfg.nlm_k)
+    with_y, gy = bool(cfg.source and (cfg.cross or mix_y or need_y)), None
+    many = bool(cfg.nlm_y_passes) and passes is not None and passes >= cfg.nlm_y_passes
+    if with_y and cfg.denoiser != "oidn" and cfg.nlm_joint_passes and passes is not None \
+            and passes >= cfg.nlm_joint_passes:
+        k = cfg.nlm_y_k if many and cfg.nlm_y_k else cfg.nlm_joint_k or cfg.nlm_k
+        both = nlm_of([source, est[0]], [cfg.source, 0], k)
+        g, gy = both[:N_RGB], both[N_RGB:]
+    else:
+        g = denoised(source, cfg.source, cfg.denoiser != "oidn", cfg.nlm_k)
+    g_source = g
+    if with_y:
+        if gy is None:
+            nlm_y = cfg.denoiser == "nlm" or (cfg.denoiser == "nlm_source" and many)
+            gy = denoised(est[0], 0, nlm_y, cfg.nlm_y_k or cfg.nlm_k)
         if cfg.cross:
             # A and B disagree: a sparkle seen from one hit point only (sub-pixel apart, or
             # a rare path); neither guide is to be trusted, their geometric mean lies between
