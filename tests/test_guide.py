@@ -947,6 +947,11 @@ def test_nlm_image_of_several_images_shares_one_set_of_weights():
     def contrast(x):
         return float(x[..., 12:].mean() - x[..., :8].mean())
     assert contrast(joint) > 0.9 and contrast(own) < contrast(joint)
+    # a noise-free feature with the same edge (an albedo) keeps it as well
+    featured = nlm_image(noisy, torch.full((20, 20), 0.25), 0.7, feature=step, feature_sd=0.05)
+    assert contrast(featured) > 0.9 and contrast(own) < contrast(featured)
+    flat = nlm_image(noisy, torch.full((20, 20), 0.25), 0.7, feature=torch.zeros(3, 20, 20), feature_sd=0.05)
+    torch.testing.assert_close(flat, own)                         # a flat feature changes nothing
 
 
 def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):
@@ -971,7 +976,7 @@ def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):
                                   many)
     assert not np.array_equal(many, joint)
     _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-nlm-joint-passes": "16", "--guide-nlm-joint-k": "0.7"},
-                            " joint(from N=16, k=0.7) ")
+                            " oidn(y, fast) below N=16, joint(z4 + y) from N=16 k=0.7 ")
 
 
 def test_redistribute_gives_back_the_clamps_loss_within_each_pixels_range():

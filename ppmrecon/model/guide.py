@@ -186,6 +186,7 @@ _NUMBERS = {
     "anchor_free_dark": (">=0", "a factor >= 0 (0 = an empty ~z^4 only)"),
     "nlm_joint_passes": (">=0", "a pass count >= 0 (0 = never)"),
     "nlm_joint_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
+    "nlm_albedo_sd": (">=0", "an albedo deviation >= 0 (0 = off)"),
 }
 
 
@@ -340,6 +341,9 @@ class GuideConfig:
     nlm_joint_passes: float = 0.0
     #: the joint filter's k (below ``nlm_y_passes``); 0 = ``nlm_k``
     nlm_joint_k: float = 0.0
+    #: > 0: the joint filter's weights also read the albedo, as an image of this nominal
+    #: standard deviation (a texture edge stops the averaging); 0 = off
+    nlm_albedo_sd: float = 0.0
     #: with ``anchor_free``: a pixel whose widest estimate ~z^4 reads at most this factor x the
     #: guard's floor x the image's scale is dark, not a speckle (:func:`speckle_field`); 0 = only
     #: an empty ~z^4 (checkpoints without it read as 0)
@@ -429,7 +433,7 @@ def nlm_window(cfg: GuideConfig) -> tuple[int, int]:
 
 
 def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
-              patch: int = 1) -> torch.Tensor:
+              patch: int = 1, feature: torch.Tensor | None = None, feature_sd: float = 0.0) -> torch.Tensor:
     """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
     Zwicker 2012 ("Adaptive Rendering with Non-Local Means Filtering", their per-pixel distance
     with the variance-cancellation term, alpha = 1): colour (3 G, H, W), G images of R, G, B,
@@ -444,7 +448,10 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
     image's own differences the weights vanish and the image is kept; OIDN assumes noise and
     smooths detail instead. With G > 1 the images share one set of weights (a joint filter:
     images of independent noise, ~y and the guide's source, each denoised with the evidence
-    of both). Memory-bound: the buffers are reused across the window's offsets."""
+    of both). With a noise-free ``feature`` (F, H, W) (e.g. the albedo) the distance is
+    ``max(d^2, |f_p - f_q|^2 / feature_sd^2)``, d^2 after its patch mean, the feature's per pixel
+    (Rousselle, Knaus & Zwicker 2013: the weight is the smaller of the colour's and the feature's):
+    a feature edge stops the averaging. Memory-bound: the buffers are reused across the window's offsets."""
     groups = 1 if variance.dim() == 2 else variance.shape[0]
     u = colour[None].float().contiguous()
     v = variance.reshape(1, groups, *variance.shape[-2:]).float().clamp(min=0.0)
@@ -455,6 +462,10 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
     num, den = torch.zeros_like(u), torch.zeros_like(v[:, :1])
     diff, dist, shared, scale = torch.empty_like(u), torch.empty_like(v), torch.empty_like(v), torch.empty_like(v)
     joint = torch.empty_like(den)
+    if feature is not None:
+        f = feature[None].float().contiguous()
+        pad_f = torch.nn.functional.pad(f, (r, r, r, r), mode="replicate")
+        fdiff, fdist = torch.empty_like(f), torch.empty_like(den)
     tiny = torch.finfo(torch.float32).tiny
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
@@ -466,6 +477,10 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
             d = dist if groups == 1 else torch.mean(dist, 1, keepdim=True, out=joint)
             w = torch.nn.functional.avg_pool2d(d, 2 * patch + 1, stride=1, padding=patch,
                                                count_include_pad=False)
+            if feature is not None:                  # per pixel, as Rousselle et al. 2013's feature weight
+                torch.sub(f, pad_f[..., dy:dy + height, dx:dx + width], out=fdiff).square_()
+                torch.mean(fdiff, 1, keepdim=True, out=fdist).mul_(1.0 / feature_sd ** 2)
+                torch.maximum(w, fdist, out=w)
             # weights below e^-NLM_CUT are set to 0 exactly: subnormal products otherwise slow
             # the loop down 1.3-1.7x on CPUs (measured at 1280x720)
             w.clamp_(0.0, NLM_CUT).neg_().exp_().sub_(math.exp(-NLM_CUT))
@@ -668,7 +683,10 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         """NL-means (tolerance ``k``) of ``images`` (each (3, H, W)) with one set of weights,
         estimates ``indices``' variances; (3 len(images), H, W)."""
         variance = torch.from_numpy(np.ascontiguousarray(variances[indices], np.float32))
-        return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg))
+        texture = (torch.from_numpy(np.ascontiguousarray(albedo, np.float32)).permute(2, 0, 1)
+                   if len(images) > 1 and cfg.nlm_albedo_sd else None)
+        return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg),
+                         feature=texture, feature_sd=cfg.nlm_albedo_sd)
 
     def denoised(image: torch.Tensor, index: int, nlm: bool, k: float) -> torch.Tensor:
         """OIDN's or NL-means' (tolerance ``k``) image of ``image`` (3, H, W), estimate
