@@ -346,10 +346,10 @@ def shipped_row(guide: GuideConfig) -> list[str]:
               + (f" (NL-means' of ~y too from N = {guide.nlm_y_passes:g} passes)" if guide.nlm_y_passes else "")
               }[guide.denoiser] + (f"; NL-means' k for ~y {guide.nlm_y_k:g}" if guide.nlm_y_k else "")
     if guide.nlm_joint_passes and guide.denoiser != "oidn":
-        images += (f"; from N = {guide.nlm_joint_passes:g} passes the source and ~y denoised together by one "
-                   f"NL-means with joint weights (k = {guide.nlm_joint_k or guide.nlm_k:g}"
-                   + (f", {guide.nlm_y_k:g} from N = {guide.nlm_y_passes:g}" if guide.nlm_y_passes and guide.nlm_y_k
-                      else "") + ")")
+        images += (f"; from N = {guide.nlm_joint_passes:g} passes"
+                   + (f" to N = {guide.nlm_y_passes:g}" if guide.nlm_y_passes else "")
+                   + " the source and ~y denoised together by one NL-means with joint weights (k = "
+                   f"{guide.nlm_joint_k or guide.nlm_k:g})")
     mixed = (f"{images} mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}"
              + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "

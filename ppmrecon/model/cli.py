@@ -445,21 +445,21 @@ def _guide_header(guide: GuideConfig) -> str:
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
     nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}"
     uses_y = bool(guide.y_weight or guide.cross)
-    joint = bool(uses_y and guide.nlm_joint_passes and guide.denoiser != "oidn")
-    # NL-means on ~y alone from nlm_y_passes, unless the joint filter has taken over by then
-    y_nlm = bool(guide.nlm_y_passes) and not (joint and guide.nlm_y_passes >= guide.nlm_joint_passes)
-    y_alone = {"oidn": "", "nlm": "", "nlm_source": f" oidn(y, {guide.quality})"
-               + (f" nlm(y from N={guide.nlm_y_passes:g})" if y_nlm else "")}[guide.denoiser]
-    y_alone += f" k(y)={guide.nlm_y_k:g}" if guide.nlm_y_k and (guide.denoiser == "nlm" or y_nlm) else ""
+    # the joint filter holds from nlm_joint_passes up to nlm_y_passes (from there ~y has its own NL-means)
+    joint = bool(uses_y and guide.nlm_joint_passes and guide.denoiser != "oidn"
+                 and not (guide.nlm_y_passes and guide.nlm_y_passes <= guide.nlm_joint_passes))
+    y_k = f" k(y)={guide.nlm_y_k:g}" if guide.nlm_y_k else ""
+    y_alone = {"oidn": "", "nlm": y_k, "nlm_source": f" oidn(y, {guide.quality})"
+               + (f" nlm(y from N={guide.nlm_y_passes:g}){y_k}" if guide.nlm_y_passes and not joint else "")
+               }[guide.denoiser]
     source = {"oidn": f"oidn(z{guide.source}, {guide.quality})",
               "nlm": f"{nlm}(z{guide.source}{', y' if uses_y else ''})",
               "nlm_source": f"{nlm}(z{guide.source})"}[guide.denoiser] + (y_alone if uses_y else "")
     if joint:
-        # the joint filter takes over from its pass count on; what precedes holds below it
-        many = (f" (k={guide.nlm_y_k:g} from N={guide.nlm_y_passes:g})" if guide.nlm_y_passes and guide.nlm_y_k
-                else "")
         source += (f" below N={guide.nlm_joint_passes:g}, joint(z{guide.source} + y) from "
-                   f"N={guide.nlm_joint_passes:g} k={guide.nlm_joint_k or guide.nlm_k:g}{many}")
+                   f"N={guide.nlm_joint_passes:g} k={guide.nlm_joint_k or guide.nlm_k:g}"
+                   + (f" below N={guide.nlm_y_passes:g}, nlm(y) from N={guide.nlm_y_passes:g}{y_k}"
+                      if guide.nlm_y_passes else ""))
     return (f"{source} {guide.mode} {how} cross={guide.cross:g} "
             f"y={guide.y_weight:g}{found}{spike}{settled}{select}{terms}{spikes}")
 

@@ -94,12 +94,13 @@ the best input lower on all six (literature to N = 1024 0.676 -> 0.596, at N = 1
 ratio lower on five (``holdout_n1024_s17`` 0.829 -> 0.864 the exception). A 7 x 7 window
 (``nlm_radius`` 3) did about as well as 11 x 11 and 15 x 15 (``guide_s20_nlmr_*``,
 ``guide_s20_nlm_*``) and costs what the OIDN call it replaces does (0.5 s at 1280x720 on two
-cores: the whole denoise stays at 1.86x OIDN's time). From 16 passes (``nlm_joint_passes``; k =
-0.7, ``nlm_joint_k``, and 1 from ``nlm_y_passes`` = 512 passes) the source and ~y are denoised
-together by one NL-means with joint weights: their noise is independent, so a difference both
-show is signal (literature scenes 0.584 -> 0.539 of the best input, ``holdout_s16`` 0.430 ->
-0.414; ``benchmarks/results/guide_s21_final_*``), and it replaces the OIDN call on ~y (1.61x OIDN's
-time in all).
+cores: the whole denoise stays at 1.86x OIDN's time). From 16 to 511 passes
+(``nlm_joint_passes``, k = 0.7 ``nlm_joint_k``) the source and ~y are denoised together by one
+NL-means with joint weights: their noise is independent, so a difference both show is signal
+(literature scenes 0.584 -> 0.546 of the best input, ``holdout_s16`` 0.430 -> 0.414;
+``benchmarks/results/guide_s21_final_*``), and it replaces the OIDN call on ~y (1.61x OIDN's time in
+all). From 512 passes (``nlm_y_passes``) each image has its own NL-means, ~y's at k = 1
+(``nlm_y_k``): there the joint filter cost water_caustic (0.89 -> 1.06 of its best input at N = 512).
 
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
@@ -186,7 +187,6 @@ _NUMBERS = {
     "anchor_free_dark": (">=0", "a factor >= 0 (0 = an empty ~z^4 only)"),
     "nlm_joint_passes": (">=0", "a pass count >= 0 (0 = never)"),
     "nlm_joint_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
-    "nlm_albedo_sd": (">=0", "an albedo deviation >= 0 (0 = off)"),
 }
 
 
@@ -331,19 +331,16 @@ class GuideConfig:
     #: with denoiser "nlm_source": renders of at least this many passes denoise ~y by NL-means
     #: too (OIDN below); 0 = never (checkpoints without it read as 0)
     nlm_y_passes: float = 0.0
-    #: NL-means' k for ~y (with "nlm", or "nlm_source" and ``nlm_y_passes``; from
-    #: ``nlm_y_passes`` passes also the joint filter's); 0 = ``nlm_k``
+    #: NL-means' k for ~y (with "nlm", or "nlm_source" and ``nlm_y_passes``); 0 = ``nlm_k``
     nlm_y_k: float = 0.0
     #: with denoiser "nlm" or "nlm_source", where the guide uses ~y: renders of at least this
-    #: many passes denoise the source and ~y by one NL-means with joint weights (:func:`nlm_image`
-    #: of both; their noise is independent, so the patch distance has twice the evidence);
-    #: 0 = never (checkpoints without it read as 0)
+    #: many passes (and fewer than ``nlm_y_passes``, where each image has its own NL-means)
+    #: denoise the source and ~y by one NL-means with joint weights (:func:`nlm_image` of both;
+    #: their noise is independent, so the patch distance has twice the evidence); 0 = never
+    #: (checkpoints without it read as 0)
     nlm_joint_passes: float = 0.0
-    #: the joint filter's k (below ``nlm_y_passes``); 0 = ``nlm_k``
+    #: the joint filter's k; 0 = ``nlm_k``
     nlm_joint_k: float = 0.0
-    #: > 0: the joint filter's weights also read the albedo, as an image of this nominal
-    #: standard deviation (a texture edge stops the averaging); 0 = off
-    nlm_albedo_sd: float = 0.0
     #: with ``anchor_free``: a pixel whose widest estimate ~z^4 reads at most this factor x the
     #: guard's floor x the image's scale is dark, not a speckle (:func:`speckle_field`); 0 = only
     #: an empty ~z^4 (checkpoints without it read as 0)
@@ -433,7 +430,7 @@ def nlm_window(cfg: GuideConfig) -> tuple[int, int]:
 
 
 def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
-              patch: int = 1, feature: torch.Tensor | None = None, feature_sd: float = 0.0) -> torch.Tensor:
+              patch: int = 1) -> torch.Tensor:
     """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
     Zwicker 2012 ("Adaptive Rendering with Non-Local Means Filtering", their per-pixel distance
     with the variance-cancellation term, alpha = 1): colour (3 G, H, W), G images of R, G, B,
@@ -448,10 +445,7 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
     image's own differences the weights vanish and the image is kept; OIDN assumes noise and
     smooths detail instead. With G > 1 the images share one set of weights (a joint filter:
     images of independent noise, ~y and the guide's source, each denoised with the evidence
-    of both). With a noise-free ``feature`` (F, H, W) (e.g. the albedo) the distance is
-    ``max(d^2, |f_p - f_q|^2 / feature_sd^2)``, d^2 after its patch mean, the feature's per pixel
-    (Rousselle, Knaus & Zwicker 2013: the weight is the smaller of the colour's and the feature's):
-    a feature edge stops the averaging. Memory-bound: the buffers are reused across the window's offsets."""
+    of both). Memory-bound: the buffers are reused across the window's offsets."""
     groups = 1 if variance.dim() == 2 else variance.shape[0]
     u = colour[None].float().contiguous()
     v = variance.reshape(1, groups, *variance.shape[-2:]).float().clamp(min=0.0)
@@ -462,10 +456,6 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
     num, den = torch.zeros_like(u), torch.zeros_like(v[:, :1])
     diff, dist, shared, scale = torch.empty_like(u), torch.empty_like(v), torch.empty_like(v), torch.empty_like(v)
     joint = torch.empty_like(den)
-    if feature is not None:
-        f = feature[None].float().contiguous()
-        pad_f = torch.nn.functional.pad(f, (r, r, r, r), mode="replicate")
-        fdiff, fdist = torch.empty_like(f), torch.empty_like(den)
     tiny = torch.finfo(torch.float32).tiny
     for dy in range(2 * r + 1):
         for dx in range(2 * r + 1):
@@ -477,10 +467,6 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
             d = dist if groups == 1 else torch.mean(dist, 1, keepdim=True, out=joint)
             w = torch.nn.functional.avg_pool2d(d, 2 * patch + 1, stride=1, padding=patch,
                                                count_include_pad=False)
-            if feature is not None:                  # per pixel, as Rousselle et al. 2013's feature weight
-                torch.sub(f, pad_f[..., dy:dy + height, dx:dx + width], out=fdiff).square_()
-                torch.mean(fdiff, 1, keepdim=True, out=fdist).mul_(1.0 / feature_sd ** 2)
-                torch.maximum(w, fdist, out=w)
             # weights below e^-NLM_CUT are set to 0 exactly: subnormal products otherwise slow
             # the loop down 1.3-1.7x on CPUs (measured at 1280x720)
             w.clamp_(0.0, NLM_CUT).neg_().exp_().sub_(math.exp(-NLM_CUT))
@@ -683,10 +669,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         """NL-means (tolerance ``k``) of ``images`` (each (3, H, W)) with one set of weights,
         estimates ``indices``' variances; (3 len(images), H, W)."""
         variance = torch.from_numpy(np.ascontiguousarray(variances[indices], np.float32))
-        texture = (torch.from_numpy(np.ascontiguousarray(albedo, np.float32)).permute(2, 0, 1)
-                   if len(images) > 1 and cfg.nlm_albedo_sd else None)
-        return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg),
-                         feature=texture, feature_sd=cfg.nlm_albedo_sd)
+        return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg))
 
     def denoised(image: torch.Tensor, index: int, nlm: bool, k: float) -> torch.Tensor:
         """OIDN's or NL-means' (tolerance ``k``) image of ``image`` (3, H, W), estimate
@@ -698,9 +681,8 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     with_y, gy = bool(cfg.source and (cfg.cross or mix_y or need_y)), None
     many = bool(cfg.nlm_y_passes) and passes is not None and passes >= cfg.nlm_y_passes
     if with_y and cfg.denoiser != "oidn" and cfg.nlm_joint_passes and passes is not None \
-            and passes >= cfg.nlm_joint_passes:
-        k = cfg.nlm_y_k if many and cfg.nlm_y_k else cfg.nlm_joint_k or cfg.nlm_k
-        both = nlm_of([source, est[0]], [cfg.source, 0], k)
+            and passes >= cfg.nlm_joint_passes and not many:
+        both = nlm_of([source, est[0]], [cfg.source, 0], cfg.nlm_joint_k or cfg.nlm_k)
         g, gy = both[:N_RGB], both[N_RGB:]
     else:
         g = denoised(source, cfg.source, cfg.denoiser != "oidn", cfg.nlm_k)
