@@ -93,8 +93,9 @@ RESHIP_NUMBERS = (
      "guide", "nlm_y_passes"),
     ("--guide-nlm-y-k", "K", "ship with NL-means' tolerance K for ~y (GuideConfig.nlm_y_k; 0 = nlm_k)",
      "guide", "nlm_y_k"),
-    ("--guide-nlm-joint-passes", "M", "ship with renders of at least M passes denoising the source and ~y by one "
-                                      "NL-means with joint weights (GuideConfig.nlm_joint_passes; 0 = never)",
+    ("--guide-nlm-joint-passes", "M", "ship with renders of at least M passes (and fewer than nlm_y_passes) "
+                                      "denoising the source and ~y by one NL-means with joint weights "
+                                      "(GuideConfig.nlm_joint_passes; 0 = never)",
      "guide", "nlm_joint_passes"),
     ("--guide-nlm-joint-k", "K", "ship with the joint NL-means' tolerance K (GuideConfig.nlm_joint_k; 0 = nlm_k)",
      "guide", "nlm_joint_k"),

@@ -121,18 +121,18 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      f"with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number 1..{NLM_MAX_RADIUS} "
      "(patches of half width R // 2; the time grows as R^2; default: the checkpoint's, 3)"),
     ("--guide-nlm-y-passes", "M", "nlm_y_passes",
-     "with --guide-denoiser nlm_source: renders of at least M passes denoise ~y by NL-means too, OIDN below "
-     "(OIDN smooths detail a many-pass ~y resolves); 0 = never (default: the checkpoint's; the shipped model's 512)"),
+     "with --guide-denoiser nlm_source: renders of at least M passes denoise ~y by its own NL-means too (and the "
+     "joint filter stops there), OIDN below (OIDN smooths detail a many-pass ~y resolves); 0 = never (default: "
+     "the checkpoint's; the shipped model's 512)"),
     ("--guide-nlm-y-k", "K", "nlm_y_k",
      "NL-means' tolerance K for ~y (with nlm, or nlm_source and --guide-nlm-y-passes); 0 = --guide-nlm-k "
      "(default: the checkpoint's; the shipped model's 1)"),
     ("--guide-nlm-joint-passes", "M", "nlm_joint_passes",
-     "with --guide-denoiser nlm or nlm_source, where the guide uses ~y: renders of at least M passes denoise the "
-     "source and ~y by one NL-means with joint weights (their noise is independent); 0 = never (default: the "
-     "checkpoint's; the shipped model's 16)"),
+     "with --guide-denoiser nlm or nlm_source, where the guide uses ~y: renders of at least M passes (and fewer "
+     "than --guide-nlm-y-passes) denoise the source and ~y by one NL-means with joint weights (their noise is "
+     "independent); 0 = never (default: the checkpoint's; the shipped model's 16)"),
     ("--guide-nlm-joint-k", "K", "nlm_joint_k",
-     "the joint NL-means' tolerance K below --guide-nlm-y-passes (from there --guide-nlm-y-k's); 0 = --guide-nlm-k "
-     "(default: the checkpoint's; the shipped model's 0.7)"),
+     "the joint NL-means' tolerance K; 0 = --guide-nlm-k (default: the checkpoint's; the shipped model's 0.7)"),
     ("--guide-anchor-free-dark", "D", "anchor_free_dark",
      "with --guide-anchor-free: a pixel whose widest estimate ~z^4 reads at most D x the guard's floor x the "
      "image's scale is dark, not a photon speckle, and keeps its own range; 0 = only an empty ~z^4 (default: the "

@@ -183,6 +183,12 @@ def median3x3_at(x: torch.Tensor, rows: torch.Tensor, cols: torch.Tensor) -> tor
     return x[:, r, c].reshape(x.shape[0], -1, 9).median(-1).values
 
 
+def floor_of(cfg: "GuardConfig") -> float:
+    """The relative floor eps / scale in force: the guard's ``floor``, or
+    :data:`RELATIVE_FLOOR` with the guard off (the guide's rules use it either way)."""
+    return cfg.floor if cfg.enabled else RELATIVE_FLOOR
+
+
 def local_floor(x: torch.Tensor) -> torch.Tensor:
     """A robust local level in 6 operations instead of the median's 38: the smallest of
     the three row medians of the 3 x 3 window (replicate padding). A lone spike moves no

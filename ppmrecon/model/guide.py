@@ -533,10 +533,10 @@ def lone_y_spikes(y: torch.Tensor, z: torch.Tensor, eps: torch.Tensor | float, r
 
 def dark_level(cfg: GuideConfig, guard: GuardConfig, scale: torch.Tensor | float) -> torch.Tensor | float:
     """:func:`speckle_field`'s ``dark``: ``cfg.anchor_free_dark`` x the guard's floor x
-    ``scale`` (:data:`.guard.RELATIVE_FLOOR` with the guard off)."""
-    from .guard import RELATIVE_FLOOR
+    ``scale`` (:func:`.guard.floor_of`)."""
+    from .guard import floor_of
 
-    return cfg.anchor_free_dark * (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale
+    return cfg.anchor_free_dark * floor_of(guard) * scale
 
 
 def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: GuardConfig,
@@ -544,11 +544,11 @@ def y_spike_mask(y: torch.Tensor, z: torch.Tensor, cfg: GuideConfig, guard: Guar
     """:func:`lone_y_spikes` with the guide's factor ``cfg.y_spike`` and eps = the guard's
     floor x ``scale`` (:data:`.guard.RELATIVE_FLOOR` with the guard off); None when the rule
     is off. y (B, 3, H, W), z (B, 4, 3, H, W); the envelope and the chooser's band share it."""
-    from .guard import RELATIVE_FLOOR
+    from .guard import floor_of
 
     if not cfg.y_spike:
         return None
-    return lone_y_spikes(y, z, (guard.floor if guard.enabled else RELATIVE_FLOOR) * scale, cfg.y_spike)
+    return lone_y_spikes(y, z, floor_of(guard) * scale, cfg.y_spike)
 
 
 def lone_z_spikes(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, eps: torch.Tensor | float,
@@ -582,14 +582,14 @@ def z_spike_mask(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor | Non
     """:func:`lone_z_spikes` with the guide's factor ``cfg.z_spike``, eps as for
     :func:`y_spike_mask` and r0 the guard's ``min_rel_error`` (its default with the guard
     off); None when the rule is off. ``variances`` (B, 5, H, W)."""
-    from .guard import DEFAULT_ON, RELATIVE_FLOOR
+    from .guard import DEFAULT_ON, floor_of
 
     if not cfg.z_spike:
         return None
     if variances is None:
         raise ValueError("the guide's z_spike needs the five variances of the mean")
-    floor, r0 = (guard.floor, guard.min_rel_error) if guard.enabled else (RELATIVE_FLOOR, DEFAULT_ON.min_rel_error)
-    return lone_z_spikes(y, z, variances, floor * scale, cfg.z_spike, r0)
+    r0 = guard.min_rel_error if guard.enabled else DEFAULT_ON.min_rel_error
+    return lone_z_spikes(y, z, variances, floor_of(guard) * scale, cfg.z_spike, r0)
 
 
 def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.0,
@@ -641,11 +641,11 @@ def y_share(variances: np.ndarray, source: int, weight: float, found: float = 0.
 
 
 class GuideImages(NamedTuple):
-    """The guide and the two OIDN images it is made of, each (3, H, W)."""
+    """The guide and the two denoised images it is made of, each (3, H, W)."""
 
     guide: torch.Tensor
-    source: torch.Tensor          # OIDN's image of the (despiked) source estimate
-    y: torch.Tensor | None        # OIDN's image of ~y, when it was made
+    source: torch.Tensor          # the denoiser's image of the (despiked) source estimate
+    y: torch.Tensor | None        # the denoiser's image of ~y, when it was made
 
 
 def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, cfg: GuideConfig,
@@ -656,7 +656,8 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
     denoises the source estimate with its B-only spikes removed (:func:`despike`); with
     ``cross``, ``y_weight`` or ``need_y`` it also denoises ~y, once. ``variances`` (5, H, W),
     the inputs' variances of the mean, are needed with ``y_weight`` (:func:`y_share`);
-    ``passes``, the render's, decides ``nlm_y_passes``. Whole images only: OIDN has no halo."""
+    ``passes``, the render's, decides ``nlm_joint_passes`` and ``nlm_y_passes``. Whole images
+    only: neither denoiser has a halo."""
     mix_y = bool(cfg.y_weight and cfg.source)
     if mix_y and variances is None:
         raise ValueError("guide_images: the guide's y_weight needs the inputs' variances")

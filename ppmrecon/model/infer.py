@@ -33,7 +33,7 @@ from ..buffers import BufferFile
 from ..errors import PpmreconError, UsageError
 from .combine import NonFiniteLogitsError, combine_with_weights, logit_channels
 from .features import ModelInputs, buffer_scales, from_buffer
-from .guard import RELATIVE_FLOOR, GuardConfig, finish, guard_buffer, image_scale, passes_of
+from .guard import GuardConfig, finish, floor_of, guard_buffer, image_scale, passes_of
 from .chooser import Chooser, band, candidates, features
 from .guide import (ENVELOPE_MODES, Aim, GuideConfig, GuideImages, cascade_aim, dark_level, envelope, guide_images,
                     guided_logits, speckle_field, y_spike_mask, z_spike_mask)
@@ -223,7 +223,7 @@ def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
     if scale is None:
         scale = _scale(buf)
     aim = buffer_aim(buf, guide, guard) if aim is None else aim
-    floor = guard.floor if guard.enabled else RELATIVE_FLOOR
+    floor = floor_of(guard)
     estimates, variances, chosen = buf.estimates, buf.variances, guide
     if aim is not None:               # OIDN's inputs are ~y and t alone: two layers, not a copy of five
         estimates = np.stack((estimates[0], aim.t[0].permute(1, 2, 0).numpy()))
