@@ -20,7 +20,8 @@ default checkpoint with its firefly guard and denoiser guide (OIDN inside), as
 ``ppmrecon-denoise`` runs it (in the guide's envelope mode that is no network at all; in
 its chooser mode the envelope and the chooser), and ``shipped:MODE``, the same in another
 guide mode (``shipped:envelope``: the envelope alone) or with another guide denoiser
-(``shipped:nlm_source``: NL-means for the guide's source).
+(``shipped:nlm_source``: NL-means for the guide's source) or with guide settings changed
+(``shipped:nlm_albedo=2``, several joined by ``+``).
 Writes `denoise.md`, `denoise.json` and `denoise.png` into --out.
 """
 
@@ -44,8 +45,10 @@ sys.path.insert(0, str(ROOT))
 
 # ------------------------------------------------------------------------------ input
 
-def synthetic_buffer(width: int, height: int, seed: int = 0):
-    """A buffer file with plausible structure and noise; deterministic in ``seed``."""
+def synthetic_buffer(width: int, height: int, seed: int = 0, texture: bool = False):
+    """A buffer file with plausible structure and noise; deterministic in ``seed``. ``texture``:
+    every surface textured (a 4 px checker of albedo 1 / 0.3 times the radiance and the albedo;
+    the worst case for a filter whose work depends on where the albedo varies)."""
     from scipy.ndimage import gaussian_filter
 
     from ppmrecon import buffers as B
@@ -62,6 +65,9 @@ def synthetic_buffer(width: int, height: int, seed: int = 0):
         colour = rng.random(3).astype(np.float32)
         clean[mask] = colour * (1 + 20 * (r > 0.9))          # a few bright caustic-like blobs
         albedo[mask] = colour
+    if texture:
+        checker = np.where((yy * height // 4 + xx * width // 4) % 2 == 0, 1.0, 0.3).astype(np.float32)[..., None]
+        clean, albedo = clean * checker, albedo * checker
     clean = clean.astype(np.float32)
     y = clean * rng.gamma(2.0, 0.5, clean.shape).astype(np.float32)
     noisy_b = clean * rng.gamma(8.0, 0.125, clean.shape).astype(np.float32)
@@ -76,12 +82,12 @@ def synthetic_buffer(width: int, height: int, seed: int = 0):
                         albedo, normal, np.ones((height, width), np.float32), header)
 
 
-def load_input(args_input: str | None, width: int, height: int):
+def load_input(args_input: str | None, width: int, height: int, texture: bool = False):
     if args_input:
         from ppmrecon.buffers import read_buffers
 
         return read_buffers(args_input)
-    return synthetic_buffer(width, height)
+    return synthetic_buffer(width, height, texture=texture)
 
 
 # ----------------------------------------------------------------------------- worker
@@ -91,7 +97,7 @@ def worker(spec: dict) -> dict:
     import torch
 
     torch.set_num_threads(spec["threads"])
-    buf = load_input(spec.get("input"), spec["width"], spec["height"])
+    buf = load_input(spec.get("input"), spec["width"], spec["height"], spec.get("texture", False))
     h, w = buf.shape
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     if spec["method"] == "oidn":
@@ -119,8 +125,12 @@ def worker(spec: dict) -> dict:
 
                 from ppmrecon.model.guide import DENOISERS
                 how = spec["method"].split(":", 1)[1]
-                model.guide = (replace(model.guide, denoiser=how) if how in DENOISERS
-                               else model.guide.in_mode(how))
+                if "=" in how:                          # shipped:KEY=VALUE[+KEY=VALUE]: guide settings
+                    pairs = dict(p.split("=", 1) for p in how.split("+"))
+                    model.guide = replace(model.guide, **{k: float(v) for k, v in pairs.items()})
+                else:
+                    model.guide = (replace(model.guide, denoiser=how) if how in DENOISERS
+                                   else model.guide.in_mode(how))
         else:
             model = build(spec["method"]).eval()
         precision = resolve_precision(spec["precision"], torch.device("cpu"))
@@ -242,6 +252,9 @@ def main() -> None:
     ap.add_argument("--slow-after", type=float, default=20.0,
                     help="a preset whose warm-up run takes longer than this many seconds is timed once")
     ap.add_argument("--input", help="a rendered buffer file instead of the synthetic 1280x720 one")
+    ap.add_argument("--texture", action="store_true",
+                    help="synthetic input: every surface textured (a 4 px albedo checker), not flat albedo with "
+                         "40 coloured disks")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args()
     if args.worker:
@@ -254,7 +267,8 @@ def main() -> None:
 
     default = args.default or DEFAULT_PRESET
     base = {"threads": args.threads, "precision": args.precision, "repeats": args.repeats,
-            "slow_after": args.slow_after, "input": args.input, "width": 1280, "height": 720}
+            "slow_after": args.slow_after, "input": args.input, "width": 1280, "height": 720,
+            "texture": args.texture}
     load_before = " ".join(f"{x:.2f}" for x in os.getloadavg())
     methods = ["oidn"] + args.presets.split(",")
     rounds = []
@@ -273,7 +287,7 @@ def main() -> None:
             "torch": torch.__version__, "pyoidn": getattr(pyoidn, "__version__", _dist_version("pyoidn")),
             "python": platform.python_version(), "load_before": load_before,
             "load_after": " ".join(f"{x:.2f}" for x in os.getloadavg()),
-            "input": args.input or "synthetic 1280x720 buffer (seed 0)"}
+            "input": args.input or f"synthetic 1280x720 buffer (seed 0{', textured everywhere' if args.texture else ''})"}
     args.out.mkdir(parents=True, exist_ok=True)
     md = table(results, memory, default, meta)
     (args.out / "denoise.md").write_text(md)

@@ -147,6 +147,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_nlm_radius: float | None = None, guide_nlm_y_passes: float | None = None,
             guide_nlm_y_k: float | None = None, guide_nlm_joint_passes: float | None = None,
             guide_nlm_joint_k: float | None = None, guide_anchor_free_dark: float | None = None,
+            guide_nlm_albedo: float | None = None, guide_nlm_albedo_eps: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -171,9 +172,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``oidn``, ``nlm`` (variance-normalised NL-means for the source and ~y) or ``nlm_source``
     (for the source, OIDN for ~y; None: the model's), as ``--guide-denoiser``, with
     ``guide_nlm_k`` / ``guide_nlm_radius`` / ``guide_nlm_y_passes`` / ``guide_nlm_y_k`` /
-    ``guide_nlm_joint_passes`` / ``guide_nlm_joint_k`` as ``--guide-nlm-k`` / ``--guide-nlm-radius``
-    / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` / ``--guide-nlm-joint-passes`` /
-    ``--guide-nlm-joint-k``;
+    ``guide_nlm_joint_passes`` / ``guide_nlm_joint_k`` / ``guide_nlm_albedo`` / ``guide_nlm_albedo_eps``
+    as ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` /
+    ``--guide-nlm-joint-passes`` / ``--guide-nlm-joint-k`` / ``--guide-nlm-albedo`` / ``--guide-nlm-albedo-eps``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -251,7 +252,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "cascade_y_up": guide_cascade_y_up, "nlm_k": guide_nlm_k,
                                          "nlm_radius": guide_nlm_radius, "nlm_y_passes": guide_nlm_y_passes,
                                          "nlm_y_k": guide_nlm_y_k, "nlm_joint_passes": guide_nlm_joint_passes,
-                                         "nlm_joint_k": guide_nlm_joint_k,
+                                         "nlm_joint_k": guide_nlm_joint_k, "nlm_albedo": guide_nlm_albedo,
+                                         "nlm_albedo_eps": guide_nlm_albedo_eps,
                                          "anchor_free_dark": guide_anchor_free_dark},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,

@@ -99,6 +99,11 @@ RESHIP_NUMBERS = (
      "guide", "nlm_joint_passes"),
     ("--guide-nlm-joint-k", "K", "ship with the joint NL-means' tolerance K (GuideConfig.nlm_joint_k; 0 = nlm_k)",
      "guide", "nlm_joint_k"),
+    ("--guide-nlm-albedo", "F", "ship with NL-means also measuring each pair on the albedo-demodulated images, "
+                                "counted F times, and keeping the smaller distance (GuideConfig.nlm_albedo; "
+                                "0 = off)", "guide", "nlm_albedo"),
+    ("--guide-nlm-albedo-eps", "E", "ship with E added to the albedo before the demodulation divides by it "
+                                    "(GuideConfig.nlm_albedo_eps)", "guide", "nlm_albedo_eps"),
     ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
                                       "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
                                       "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
@@ -351,6 +356,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                    + (f" to N = {guide.nlm_y_passes:g}" if guide.nlm_y_passes else "")
                    + " the source and ~y denoised together by one NL-means with joint weights (k = "
                    f"{guide.nlm_joint_k or guide.nlm_k:g})")
+    if guide.nlm_albedo and guide.denoiser != "oidn":
+        images += (f"; each NL-means pair also measured on the images divided by the albedo (its RGB mean + "
+                   f"{guide.nlm_albedo_eps:g}), counted {guide.nlm_albedo:g} times, the smaller distance kept")
     mixed = (f"{images} mixed by the inverse of their inputs' local variances, "
              f"~y's times {guide.y_weight:g}"
              + (f" (and by the share of pixels, over {guide.y_empty:g} px, where ~y did not read 0 while "

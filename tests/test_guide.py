@@ -949,6 +949,65 @@ def test_nlm_image_of_several_images_shares_one_set_of_weights():
     assert contrast(joint) > 0.9 and contrast(own) < contrast(joint)
 
 
+def test_nlm_image_with_albedo_averages_across_texture_and_keeps_what_it_does_not_explain():
+    """nlm_image's ``albedo``: on a textured diffuse surface (radiance = albedo x a smooth
+    irradiance, noise of the mean proportional to it) the albedo-aware filter lands closer to
+    the clean image than the plain one, which stops at every texture edge; where the albedo is
+    flat it is the plain filter; a highlight independent of the texture (radiance not the
+    albedo's) does not get the texture printed into it."""
+    from ppmrecon.model.guide import nlm_image
+
+    gen = torch.Generator().manual_seed(29)
+    size = 32
+    texture = torch.where((torch.arange(size)[:, None] // 2 + torch.arange(size)[None] // 2) % 2 == 0, 0.8, 0.2)
+    irradiance = 1.0 + 0.3 * torch.linspace(0, 1, size)[None].expand(size, size)
+    clean = (texture * irradiance).expand(3, size, size)
+    variance = (0.25 * clean[0]) ** 2
+    noisy = clean + variance.sqrt() * torch.randn(3, size, size, generator=gen)
+    albedo = texture + 0.05
+
+    def error(x: torch.Tensor, truth: torch.Tensor) -> float:
+        return float(((x - truth) ** 2 / (truth ** 2 + 1e-2)).mean())
+
+    plain = nlm_image(noisy, variance, 0.7)
+    aware = nlm_image(noisy, variance, 0.7, albedo=albedo, albedo_penalty=2.0)
+    assert error(aware, clean) < 0.6 * error(plain, clean)
+    flat = torch.full((size, size), 0.55)
+    torch.testing.assert_close(nlm_image(noisy, variance, 0.7, albedo=flat), plain, rtol=1e-5, atol=1e-6)
+    # a highlight over the texture: the radiance is the same on both albedos
+    glossy = torch.full((3, size, size), 2.0)
+    g_var = torch.full((size, size), 0.01)
+    g_noisy = glossy + 0.1 * torch.randn(3, size, size, generator=gen)
+    g_aware = nlm_image(g_noisy, g_var, 0.7, albedo=albedo, albedo_penalty=2.0)
+    assert error(g_aware, glossy) <= 1.05 * error(nlm_image(g_noisy, g_var, 0.7), glossy)
+    # no texture pattern imprinted: the two albedos' pixels end at the same level
+    assert abs(float(g_aware[:, texture > 0.5].mean() - g_aware[:, texture < 0.5].mean())) < 5e-4
+
+
+def test_nlm_albedo_setting_reaches_the_guide_flags_and_api(tmp_path, capsys):
+    """GuideConfig.nlm_albedo F > 0 gives the guide's NL-means the albedo (changes the image of
+    a textured buffer), 0 leaves it exactly as it was; ``--guide-nlm-albedo`` /
+    ``--guide-nlm-albedo-eps`` agree with the API and the header names them; negative or not
+    a number: one clear line, exit 2; an eps of 0 is refused by the config."""
+    buf = make_buffer(24, 24, seed=53)
+    rng = np.random.default_rng(53)
+    albedo = np.repeat(rng.choice([0.1, 0.8], size=(24, 24, 1)), 3, -1).astype(np.float32)
+    buf = replace(buf, albedo=albedo, variances=np.ones_like(buf.variances),
+                  header=dict(buf.header, **{B.H_PASSES: 32}))
+    on = replace(ENVELOPE, denoiser="nlm_source", y_weight=2.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    plain = denoise(buf, model).rgb
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, nlm_albedo=0.0, nlm_albedo_eps=0.2)).rgb,
+                                  plain)
+    aware = denoise(buf, model, guide=replace(on, nlm_albedo=2.0)).rgb
+    assert not np.array_equal(aware, plain)
+    _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-nlm-albedo": "2", "--guide-nlm-albedo-eps": "0.1"},
+                            "r=3 albedo=2(+0.1)")
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="nlm_albedo_eps"):
+            replace(on, nlm_albedo_eps=bad)
+
+
 def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):
     """GuideConfig.nlm_joint_passes M: a render of M passes or more (and fewer than
     nlm_y_passes, from where each image has its own NL-means) has the source and ~y denoised by

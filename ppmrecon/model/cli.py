@@ -137,6 +137,14 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "with --guide-anchor-free: a pixel whose widest estimate ~z^4 reads at most D x the guard's floor x the "
      "image's scale is dark, not a photon speckle, and keeps its own range; 0 = only an empty ~z^4 (default: the "
      "checkpoint's; the shipped model's 0.1)"),
+    ("--guide-nlm-albedo", "F", "nlm_albedo",
+     "with --guide-denoiser nlm or nlm_source: NL-means also measures each pair of pixels on the images divided "
+     "by the albedo (its RGB mean plus --guide-nlm-albedo-eps), counted F times, and keeps the smaller distance "
+     "(a texture no longer stops the averaging; a highlight or caustic over it keeps the plain distance); 0 = off "
+     "(default: the checkpoint's)"),
+    ("--guide-nlm-albedo-eps", "E", "nlm_albedo_eps",
+     "with --guide-nlm-albedo: what is added to the albedo before dividing by it, E > 0 (default: the "
+     "checkpoint's, 0.05)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -443,7 +451,8 @@ def _guide_header(guide: GuideConfig) -> str:
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
-    nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}"
+    nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}" + (
+        f" albedo={guide.nlm_albedo:g}(+{guide.nlm_albedo_eps:g})" if guide.nlm_albedo else "")
     uses_y = bool(guide.y_weight or guide.cross)
     # the joint filter holds from nlm_joint_passes up to nlm_y_passes (from there ~y has its own NL-means)
     joint = bool(uses_y and guide.nlm_joint_passes and guide.denoiser != "oidn"
