@@ -45,10 +45,8 @@ sys.path.insert(0, str(ROOT))
 
 # ------------------------------------------------------------------------------ input
 
-def synthetic_buffer(width: int, height: int, seed: int = 0, texture: bool = False):
-    """A buffer file with plausible structure and noise; deterministic in ``seed``. ``texture``:
-    every surface textured (a 4 px checker of albedo 1 / 0.3 times the radiance and the albedo;
-    the worst case for a filter whose work depends on where the albedo varies)."""
+def synthetic_buffer(width: int, height: int, seed: int = 0):
+    """A buffer file with plausible structure and noise; deterministic in ``seed``."""
     from scipy.ndimage import gaussian_filter
 
     from ppmrecon import buffers as B
@@ -65,9 +63,6 @@ def synthetic_buffer(width: int, height: int, seed: int = 0, texture: bool = Fal
         colour = rng.random(3).astype(np.float32)
         clean[mask] = colour * (1 + 20 * (r > 0.9))          # a few bright caustic-like blobs
         albedo[mask] = colour
-    if texture:
-        checker = np.where((yy * height // 4 + xx * width // 4) % 2 == 0, 1.0, 0.3).astype(np.float32)[..., None]
-        clean, albedo = clean * checker, albedo * checker
     clean = clean.astype(np.float32)
     y = clean * rng.gamma(2.0, 0.5, clean.shape).astype(np.float32)
     noisy_b = clean * rng.gamma(8.0, 0.125, clean.shape).astype(np.float32)
@@ -82,12 +77,12 @@ def synthetic_buffer(width: int, height: int, seed: int = 0, texture: bool = Fal
                         albedo, normal, np.ones((height, width), np.float32), header)
 
 
-def load_input(args_input: str | None, width: int, height: int, texture: bool = False):
+def load_input(args_input: str | None, width: int, height: int):
     if args_input:
         from ppmrecon.buffers import read_buffers
 
         return read_buffers(args_input)
-    return synthetic_buffer(width, height, texture=texture)
+    return synthetic_buffer(width, height)
 
 
 # ----------------------------------------------------------------------------- worker
@@ -97,7 +92,7 @@ def worker(spec: dict) -> dict:
     import torch
 
     torch.set_num_threads(spec["threads"])
-    buf = load_input(spec.get("input"), spec["width"], spec["height"], spec.get("texture", False))
+    buf = load_input(spec.get("input"), spec["width"], spec["height"])
     h, w = buf.shape
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     if spec["method"] == "oidn":
@@ -252,9 +247,6 @@ def main() -> None:
     ap.add_argument("--slow-after", type=float, default=20.0,
                     help="a preset whose warm-up run takes longer than this many seconds is timed once")
     ap.add_argument("--input", help="a rendered buffer file instead of the synthetic 1280x720 one")
-    ap.add_argument("--texture", action="store_true",
-                    help="synthetic input: every surface textured (a 4 px albedo checker), not flat albedo with "
-                         "40 coloured disks")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks" / "results")
     args = ap.parse_args()
     if args.worker:
@@ -267,8 +259,7 @@ def main() -> None:
 
     default = args.default or DEFAULT_PRESET
     base = {"threads": args.threads, "precision": args.precision, "repeats": args.repeats,
-            "slow_after": args.slow_after, "input": args.input, "width": 1280, "height": 720,
-            "texture": args.texture}
+            "slow_after": args.slow_after, "input": args.input, "width": 1280, "height": 720}
     load_before = " ".join(f"{x:.2f}" for x in os.getloadavg())
     methods = ["oidn"] + args.presets.split(",")
     rounds = []
@@ -287,7 +278,7 @@ def main() -> None:
             "torch": torch.__version__, "pyoidn": getattr(pyoidn, "__version__", _dist_version("pyoidn")),
             "python": platform.python_version(), "load_before": load_before,
             "load_after": " ".join(f"{x:.2f}" for x in os.getloadavg()),
-            "input": args.input or f"synthetic 1280x720 buffer (seed 0{', textured everywhere' if args.texture else ''})"}
+            "input": args.input or "synthetic 1280x720 buffer (seed 0)"}
     args.out.mkdir(parents=True, exist_ok=True)
     md = table(results, memory, default, meta)
     (args.out / "denoise.md").write_text(md)

@@ -98,9 +98,14 @@ cores: the whole denoise stays at 1.86x OIDN's time). From 16 to 511 passes
 (``nlm_joint_passes``, k = 0.7 ``nlm_joint_k``) the source and ~y are denoised together by one
 NL-means with joint weights: their noise is independent, so a difference both show is signal
 (literature scenes 0.584 -> 0.546 of the best input, ``holdout_s16`` 0.430 -> 0.414;
-``benchmarks/results/guide_s21_final_*``), and it replaces the OIDN call on ~y (1.61x OIDN's time in
-all). From 512 passes (``nlm_y_passes``) each image has its own NL-means, ~y's at k = 1
-(``nlm_y_k``): there the joint filter cost water_caustic (0.89 -> 1.06 of its best input at N = 512).
+``benchmarks/results/guide_s21_final_*``), and it replaces the OIDN call on ~y (1.25x OIDN's time in
+all since the twenty-second session's faster loop, ``benchmarks/results/denoise_s22``). From 512
+passes (``nlm_y_passes``) each image has its own NL-means, ~y's at k = 1 (``nlm_y_k``): there the
+joint filter cost water_caustic (0.89 -> 1.06 of its best input at N = 512). With ``nlm_albedo`` (off
+by default) each pair is also measured on the albedo-demodulated images and the smaller distance
+kept: textures no longer stop the averaging (``holdout_s21`` 0.576 -> 0.551, 11 -> 5 images worse
+than their best input) but a hold-out generated before that choice did not gain (``holdout_s22``
+0.424 -> 0.425) and the filter takes twice the time (2.00x OIDN's).
 
 OIDN runs at its "fast" quality by default (``quality``): half the time of "high" at
 1280x720 for a relMSE within 1%. A model may also read the guide (``FeatureConfig.guide``)
