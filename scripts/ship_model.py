@@ -88,6 +88,8 @@ RESHIP_NUMBERS = (
     ("--guide-cascade-y-up", "M", "ship with renders of fewer than M passes taking the cascade's step to ~y "
                                   "down only (GuideConfig.cascade_y_up; 0 = up and down at every N)",
      "guide", "cascade_y_up"),
+    ("--guide-nlm-k", "K", "ship with NL-means' tolerance K for the source (GuideConfig.nlm_k: renders below "
+                           "nlm_joint_passes and from nlm_y_passes)", "guide", "nlm_k"),
     ("--guide-nlm-y-passes", "M", "ship with renders of at least M passes denoising ~y by NL-means too "
                                   "(GuideConfig.nlm_y_passes, with denoiser nlm_source; 0 = never)",
      "guide", "nlm_y_passes"),

@@ -116,7 +116,8 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "up); 0 = up and down at every N (default: the checkpoint's; the shipped model's 64)"),
     ("--guide-nlm-k", "K", "nlm_k",
      "with --guide-denoiser nlm or nlm_source: the patch distance's tolerance in units of the noise, K > 0 "
-     "(default: the checkpoint's, 0.45)"),
+     "(default: the checkpoint's; the shipped model's 0.8, used below --guide-nlm-joint-passes and from "
+     "--guide-nlm-y-passes)"),
     ("--guide-nlm-radius", "R", "nlm_radius",
      f"with --guide-denoiser nlm or nlm_source: the search window's half width in px, a whole number 1..{NLM_MAX_RADIUS} "
      "(patches of half width R // 2; the time grows as R^2; default: the checkpoint's, 3)"),
