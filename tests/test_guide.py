@@ -949,6 +949,46 @@ def test_nlm_image_of_several_images_shares_one_set_of_weights():
     assert contrast(joint) > 0.9 and contrast(own) < contrast(joint)
 
 
+def _nlm_by_offsets(colour: torch.Tensor, variance: torch.Tensor, k: float, radius: int, patch: int) -> torch.Tensor:
+    """nlm_image's formula evaluated one offset at a time, the patch mean by avg_pool2d: the
+    reference the mirrored-offset loop must match."""
+    import math
+
+    from ppmrecon.model.guide import NLM_CUT
+
+    groups = 1 if variance.dim() == 2 else variance.shape[0]
+    u, v = colour[None], variance.reshape(1, groups, *variance.shape[-2:])
+    h, w = u.shape[-2:]
+    pu = torch.nn.functional.pad(u, (radius,) * 4, mode="replicate")
+    pv = torch.nn.functional.pad(v, (radius,) * 4, mode="replicate")
+    num, den = torch.zeros_like(u), torch.zeros(1, 1, h, w)
+    for dy in range(2 * radius + 1):
+        for dx in range(2 * radius + 1):
+            uq, vq = pu[..., dy:dy + h, dx:dx + w], pv[..., dy:dy + h, dx:dx + w]
+            d = ((u - uq) ** 2).view(1, groups, 3, h, w).mean(2) - (v + torch.minimum(v, vq))
+            d = (d / (k * k * (v + vq) + torch.finfo(torch.float32).tiny)).mean(1, keepdim=True)
+            d = torch.nn.functional.avg_pool2d(d, 2 * patch + 1, stride=1, padding=patch, count_include_pad=False)
+            wt = torch.exp(-d.clamp(0.0, NLM_CUT)) - math.exp(-NLM_CUT)
+            num += wt * uq
+            den += wt
+    return (num / den)[0]
+
+
+def test_nlm_image_matches_its_formula_offset_by_offset():
+    """The mirrored-offset loop with its separable box (nlm_image) is the formula of its
+    docstring: the same as one pass per offset with avg_pool2d, for one and two images, window
+    half widths 1..3 and patches 1..2, on images of uneven size."""
+    from ppmrecon.model.guide import nlm_image
+
+    gen = torch.Generator().manual_seed(61)
+    colour = 2.0 * torch.rand(6, 13, 17, generator=gen)
+    variance = 0.2 * torch.rand(2, 13, 17, generator=gen)
+    for c, v in ((colour[:3], variance[0]), (colour, variance)):
+        for radius, patch in ((1, 1), (2, 1), (3, 1), (3, 2)):
+            torch.testing.assert_close(nlm_image(c, v, 0.7, radius, patch), _nlm_by_offsets(c, v, 0.7, radius, patch),
+                                       rtol=1e-5, atol=1e-6)
+
+
 def test_nlm_image_with_albedo_averages_across_texture_and_keeps_what_it_does_not_explain():
     """nlm_image's ``albedo``: on a textured diffuse surface (radiance = albedo x a smooth
     irradiance, noise of the mean proportional to it) the albedo-aware filter lands closer to

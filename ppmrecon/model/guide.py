@@ -222,7 +222,7 @@ class GuideConfig:
     #: NL-means: the patch distance's tolerance k in units of the noise (Rousselle et al. 2012)
     nlm_k: float = 0.45
     #: NL-means: the search window's half width in px (patches of half width radius // 2, at
-    #: least 1); the time grows as the window's area, (2 r + 1)^2 offsets (3: 0.5 s at 1280x720
+    #: least 1); the time grows as the window's area, (2 r + 1)^2 offsets (3: 0.28 s at 1280x720
     #: on two cores; 5 and 7 scored within 3% of it: ``benchmarks/results/guide_s20_nlmr_*``)
     nlm_radius: float = 3
     #: the network also predicts a per-pixel log-temperature tau of the prior:
