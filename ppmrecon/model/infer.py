@@ -222,7 +222,7 @@ def buffer_guide_images(buf: BufferFile, guide: GuideConfig, guard: GuardConfig,
     OIDN denoises its t, with its variance, in place of the guide's source estimate."""
     if scale is None:
         scale = _scale(buf)
-    aim = buffer_aim(buf, guide, guard) if aim is None else aim
+    aim = buffer_aim(buf, guide, guard, scale) if aim is None else aim
     floor = floor_of(guard)
     estimates, variances, chosen = buf.estimates, buf.variances, guide
     if aim is not None:               # OIDN's inputs are ~y and t alone: two layers, not a copy of five
@@ -296,7 +296,9 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     ``scale``: the file's :func:`.guard.image_scale` when the caller has it already; ``aim``:
     the file's :func:`buffer_aim` (made here where the guide's cascade is on and it is None)."""
     device = torch.device(device)
-    aim = buffer_aim(buf, guide, guard) if aim is None else aim
+    if (guide.y_spike or guide.anchor_spikes or guide.z_spike or guide.anchor_free_dark) and scale is None:
+        scale = _scale(buf)
+    aim = buffer_aim(buf, guide, guard, scale) if aim is None else aim
     if aim is not None:
         aim = Aim(*(None if a is None else a.to(device) for a in aim))
     est = torch.from_numpy(np.ascontiguousarray(buf.estimates, np.float32)).permute(0, 3, 1, 2).to(device)
@@ -306,8 +308,6 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     m = guide.anchor_source
     wider = variance_of(m + 1) if guide.anchor_select and m + 1 < len(buf.variances) else None
     passes = passes_of(buf) if guide.terms_passes else None
-    if (guide.y_spike or guide.anchor_spikes or guide.z_spike or guide.anchor_free_dark) and scale is None:
-        scale = _scale(buf)
     spike_variances = (variance_of(0), variance_of(len(buf.variances) - 1)) if guide.anchor_spikes else None
     variances = (torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None].to(device)
                  if guide.z_spike or guide.anchor_free else None)
