@@ -148,7 +148,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_nlm_y_k: float | None = None, guide_nlm_joint_passes: float | None = None,
             guide_nlm_joint_k: float | None = None, guide_anchor_free_dark: float | None = None,
             guide_nlm_albedo: float | None = None, guide_nlm_albedo_eps: float | None = None,
-            guide_anchor_coarse: float | None = None, guide_mode: str | None = None, guide_y_weight: float | None = None,
+            guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
             guide_anchor_spikes: float | None = None, guide_y_found: float | None = None,
@@ -202,9 +202,6 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``--guide-anchor-free``; ``guide_anchor_free_dark``: a pixel whose ~z^4 reads at most this
     many times the guard's floor x the image's scale is dark, not a speckle (0 = only an empty
     ~z^4; None: the model's), as ``--guide-anchor-free-dark``;
-    ``guide_anchor_coarse``: a second low-frequency anchor to ~z^4 over a Gaussian of this
-    many px after the first, as far as the gap exceeds its low-pass's noise (0 = off; None:
-    the model's), as ``--guide-anchor-coarse``;
     ``guide_y_empty``: ~y's share in the guide scaled by the local share
     of pixels where ~y did not read 0 while ~z^4 rests on more than one event (Gaussian width
     in px, 0 = off; None: the model's), as ``--guide-y-empty``; ``guide_redistribute``: what
@@ -257,8 +254,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "nlm_y_k": guide_nlm_y_k, "nlm_joint_passes": guide_nlm_joint_passes,
                                          "nlm_joint_k": guide_nlm_joint_k, "nlm_albedo": guide_nlm_albedo,
                                          "nlm_albedo_eps": guide_nlm_albedo_eps,
-                                         "anchor_free_dark": guide_anchor_free_dark,
-                                         "anchor_coarse": guide_anchor_coarse},
+                                         "anchor_free_dark": guide_anchor_free_dark},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

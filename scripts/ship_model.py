@@ -106,8 +106,6 @@ RESHIP_NUMBERS = (
                                 "0 = off)", "guide", "nlm_albedo"),
     ("--guide-nlm-albedo-eps", "E", "ship with E added to the albedo before the demodulation divides by it "
                                     "(GuideConfig.nlm_albedo_eps)", "guide", "nlm_albedo_eps"),
-    ("--guide-anchor-coarse", "S", "ship with a second low-frequency anchor, over a Gaussian of S px, to ~z^4 "
-                                   "(GuideConfig.anchor_coarse; 0 = off)", "guide", "anchor_coarse"),
     ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
                                       "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
                                       "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
@@ -397,9 +395,6 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f" (its neighbour correlation estimated over {guide.anchor_window:g} px)" if guide.anchor_window else "")
             + (f" where its low-pass is settled (standard deviation < {guide.anchor_settled:g} x its level)"
                if guide.anchor_settled else "")
-            + (f", then anchored again over a Gaussian of {guide.anchor_coarse:g} px to ~z^4"
-               + (" (the pulled one)" if guide.cascade else "") + " where they differ by more than that low-pass's "
-               "noise" if guide.anchor_coarse else "")
             + (f", isolated bright pixels of the anchor's aim ({guide.anchor_spikes:g}x above its 3 x 3 median) "
                "left out of its low-pass and set to the inverse-variance mean of ~y and ~z^4"
                if guide.anchor_spikes else "")

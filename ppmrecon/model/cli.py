@@ -146,10 +146,6 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-nlm-albedo-eps", "E", "nlm_albedo_eps",
      "with --guide-nlm-albedo: what is added to the albedo before dividing by it, E > 0 (default: the "
      "checkpoint's, 0.05)"),
-    ("--guide-anchor-coarse", "S", "anchor_coarse",
-     "envelope modes: a second low-frequency anchor after the first, over a Gaussian of S px, to the widest "
-     "estimate ~z^4, acting as far as the gap exceeds that low-pass's own noise (a sparse glossy floor the "
-     "envelope leaves too dark); 0 = off (default: the checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -442,7 +438,6 @@ def _guide_header(guide: GuideConfig) -> str:
     spike += f" zspike={guide.z_spike:g}" if guide.z_spike and guide.mode in ENVELOPE_MODES else ""
     spike += f" free={guide.anchor_free:g}" if guide.anchor_free and guide.mode in ENVELOPE_MODES else ""
     spike += f" redis={guide.redistribute:g}" if guide.redistribute and guide.mode in ENVELOPE_MODES else ""
-    spike += f" coarse={guide.anchor_coarse:g}" if guide.anchor_coarse and guide.mode in ENVELOPE_MODES else ""
     spike += f" cascade={guide.cascade:g}" if guide.cascade and guide.mode in ENVELOPE_MODES else ""
     spike += (f" from={guide.cascade_passes:g}" if guide.cascade and guide.cascade_passes
               and guide.mode in ENVELOPE_MODES else "")

@@ -194,7 +194,6 @@ _NUMBERS = {
     "nlm_joint_k": (">=0", "a factor >= 0 (0 = nlm_k)"),
     "nlm_albedo": (">=0", "a factor >= 0 (0 = off)"),
     "nlm_albedo_eps": (">0", "a number > 0"),
-    "anchor_coarse": (">=0", "a width in px >= 0 (0 = off)"),
 }
 
 
@@ -360,14 +359,6 @@ class GuideConfig:
     #: the demodulation divides by the albedo's RGB mean plus this (a black albedo, or a
     #: surface whose G-buffer albedo says little, does not blow the division up)
     nlm_albedo_eps: float = 0.05
-    #: envelope modes: > 0 adds a second low-frequency anchor after the first, over a Gaussian
-    #: of this many px, to the widest estimate ~z^4 (the cascade's pulled ~z^4 where it runs),
-    #: acting as far as the gap exceeds ``anchor_noise`` times that low-pass's own variance
-    #: (:func:`.guard.anchor_where_biased`, with ``anchor_window`` and ``anchor_settled``): at
-    #: a few px ~z^4's low-pass is quiet enough to test a gap the first anchor's (1.5 px, ~z^3)
-    #: noise hides, e.g. a sparse glossy floor the envelope leaves too dark; 0 = off
-    #: (checkpoints without it read as 0)
-    anchor_coarse: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -1096,8 +1087,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
 
         e_c = clamp(g_c, min_k X_{k,c}, max_k X_{k,c})            per channel, X = ~y, ~z^1..~z^4
         e'  = e + a G_sigma * (t - e)                             (:func:`.guard.anchor_where_biased`)
-        e'' = e' + a' G_S * (~z^4 - e')                           (with ``cfg.anchor_coarse`` S)
-        out = clamp(e'', min_k X_{k,c}, max_k X_{k,c})
+        out = clamp(e', min_k X_{k,c}, max_k X_{k,c})
 
     ``guide`` (B, 4, H, W) the planes of :func:`guide_planes` (only R, G, B are used), y
     (B, 3, H, W) and z (B, 4, 3, H, W) the guarded inputs, ``anchor_variance`` (B, 1, H, W)
@@ -1118,9 +1108,6 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     of ~y and ~z^4 (:func:`spike_estimate`, ``spike_variances`` = (V_y, V_4), each (B, 1, H, W));
     with ``cfg.z_spike`` the range of ~y alone where the ~z^j are a lone spike over a settled ~y
     (:func:`lone_z_spikes`, ``variances`` (B, 5, H, W) the five variances of the mean);
-    with ``cfg.anchor_coarse`` S a second anchor follows the first, over a Gaussian of S px,
-    to ~z^4 (the aim's pulled ~z^4 with ``aim``) with ~z^4's variance of the mean (from
-    ``variances``), by the same noise test;
     with ``cfg.anchor_free`` the anchored value of a pixel whose five estimates are all
     unsettled (:func:`speckle_field`) held in its range widened to the 5 x 5 medians of its
     ends (:func:`speckle_range`), so that a speckle field keeps its mean, while a firefly in
@@ -1177,11 +1164,6 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
             target = torch.where(spikes, held, target)
         held = anchor_where_biased(held, target, target_variance, guard.anchor, cfg.anchor_noise,
                                    cfg.anchor_window, cfg.anchor_settled)
-        if cfg.anchor_coarse:
-            if variances is None:
-                raise ValueError("envelope: the guide's anchor_coarse needs the five variances of the mean")
-            held = anchor_where_biased(held, z[:, -1], variances[:, -1:], cfg.anchor_coarse, cfg.anchor_noise,
-                                       cfg.anchor_window, cfg.anchor_settled)
         if spikes is not None:
             held = torch.where(spikes, spike_estimate(y, z[:, -1], *spike_variances), held)
         free = aim.free if aim is not None else speckle_field(y, z, variances, cfg.anchor_free,
