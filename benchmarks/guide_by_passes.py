@@ -2,13 +2,16 @@
 """Per-N figures of a ``bench_guide.py`` report, and a rule that picks a variant by N.
 
     benchmarks/guide_by_passes.py REPORT/guide.json [--only TEXT] [--by-passes LOW,HIGH,N0]
+                                  [--images-of OTHER/guide.json]
 
 prints, for every N of the report's images (literature scenes, or with ``--data`` the data
 set's), the geometric means of relMSE and 8x8-block relMSE over the best input and the number
 of images worse than it, per variant. ``--by-passes LOW,HIGH,N0`` adds the variant that takes
 HIGH's image at N >= N0 and LOW's below (a pass-count rule needs no new render: each image of
 the rule is one of the two variants'), and prints the report's summary table of the three.
-``--only TEXT`` keeps the images whose name contains TEXT (one data set of a report on several).
+``--only TEXT`` keeps the images whose name contains TEXT (one data set of a report on several);
+``--images-of OTHER`` keeps the images that OTHER's report also scored (e.g. the scenes that have
+a deep reference: the same images against the data set's own references and the deeper ones).
 """
 from __future__ import annotations
 
@@ -36,19 +39,29 @@ def by_passes(rows: list[dict], names: list[str]) -> list[str]:
     return lines
 
 
+def _read(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        sys.exit(f"guide_by_passes: {path}: cannot read a bench_guide report ({exc})")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("report", type=Path, help="a guide.json written by bench_guide.py")
     ap.add_argument("--only", default="", help="keep the images whose name contains this text")
+    ap.add_argument("--images-of", type=Path, default=None, metavar="OTHER",
+                    help="keep the images that this other guide.json also scored")
     ap.add_argument("--by-passes", default=None, metavar="LOW,HIGH,N0",
                     help="add the variant that is HIGH at N >= N0 and LOW below")
     args = ap.parse_args()
-    try:
-        report = json.loads(args.report.read_text())
-    except (OSError, ValueError) as exc:
-        sys.exit(f"guide_by_passes: {args.report}: cannot read a bench_guide report ({exc})")
+    report = _read(args.report)
+    other = _read(args.images_of) if args.images_of else None
     for key, title in (("scenes", "Literature scenes"), ("validation", "Data set images")):
         rows = [r for r in report.get(key, []) if args.only in r["image"]]
+        if other is not None:
+            kept = {r["image"] for r in other.get(key, [])}
+            rows = [r for r in rows if r["image"] in kept]
         if not rows:
             continue
         names = list(rows[0]["variants"])
