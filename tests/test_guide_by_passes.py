@@ -40,3 +40,14 @@ def test_rule_takes_each_variant_on_its_side_of_n0(tmp_path):
 def test_unknown_variant_is_one_line_and_nonzero(tmp_path):
     out = _run(tmp_path, "--by-passes", "a,nope,64")
     assert out.returncode != 0 and "no variant 'nope'" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_images_of_keeps_only_what_the_other_report_scored(tmp_path):
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"scenes": [], "validation": [_row(256, (0.1, 0.1), (0.1, 0.1))]}))
+    out = _run(tmp_path, "--images-of", str(other))
+    assert out.returncode == 0, out.stderr
+    assert "(1 images)" in out.stdout and "| 16 |" not in out.stdout
+    assert "| 256 | 1 | 0.900 / 1.500, 0 worse | 0.600 / 0.500, 0 worse |" in out.stdout
+    missing = _run(tmp_path, "--images-of", str(tmp_path / "nope.json"))
+    assert missing.returncode != 0 and "nope.json" in missing.stderr and len(missing.stderr.strip().splitlines()) == 1
