@@ -60,7 +60,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_quality import LITERATURE, oidn  # noqa: E402
-from deep_reference import DEEP, DEEP_HALVES  # noqa: E402
+from deep_reference import DEEP, DEEP_HALVES, DEEP_RECORD  # noqa: E402
 from study import BUILTIN, references, renderer  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
@@ -370,10 +370,10 @@ def _data_settings(data: Path) -> str:
 
 def _deep_settings(data: list[Path], images: int) -> str:
     """One line on the deep references an ``--deep-references`` report scored against (the
-    data sets' own references above are not used then), from their ``deep_reference.json``."""
+    data sets' own references above are not used then), from their :data:`DEEP_RECORD`."""
     import json
 
-    found = sorted(p for d in data for p in d.glob(f"*/{Path(DEEP).stem}.json"))
+    found = sorted(p for d in data for p in d.glob(f"*/{DEEP_RECORD}"))
     kinds = sorted({(r["passes_per_half"], r["photons"]) for r in (json.loads(p.read_text()) for p in found)})
     what = ", ".join(f"{n} passes x {j} photons" for n, j in kinds) or "none found"
     return (f"Scored against each scene's deep reference instead (`benchmarks/deep_reference.py`: two "

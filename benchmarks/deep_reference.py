@@ -42,6 +42,8 @@ from ppmrecon.train.datagen import REFERENCE, DataConfig, load_manifest, stored_
 
 DEEP = "deep_reference.exr"
 DEEP_HALVES = ("deep_reference_a.exr", "deep_reference_b.exr")
+#: What each scene's deep renders were: passes, photons, seeds, seconds, agreement.
+DEEP_RECORD = "deep_reference.json"
 #: Added to a scene's seed for the deep renders: their seeds (REFERENCE_SEED_BASE + this +
 #: scene seed) are neither the data set's references' nor its inputs'.
 DEEP_SEED_OFFSET = 7_000_000
@@ -102,7 +104,7 @@ def main() -> None:
             for name in ("reference_a.exr", "reference_b.exr"):
                 if (folder / name).exists():
                     agreement[f"data set {name} vs deep mean"] = relmse(B.read_rgb(folder / name)[0], deep)
-        write_json(folder / "deep_reference.json", {"passes_per_half": args.passes, "photons": cfg.reference_photons,
+        write_json(folder / DEEP_RECORD, {"passes_per_half": args.passes, "photons": cfg.reference_photons,
                                                     "halves": halves, "relmse": agreement})
         figures = "; ".join(f"{k} {v:.3g}" for k, v in agreement.items())
         print(f"{scene['id']}: {time.perf_counter() - t0:.0f}s; {figures}", flush=True)
