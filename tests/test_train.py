@@ -31,7 +31,7 @@ from ppmrecon.train.augment import transform_image, transform_normals  # noqa: E
 from ppmrecon.errors import UsageError  # noqa: E402
 from ppmrecon.metrics import firefly_count, firefly_mask, relmse  # noqa: E402
 from ppmrecon.train.datagen import (LEGACY_CONFIG, MANIFEST_VERSION, REFERENCE, REFERENCE_HALVES,  # noqa: E402
-                                    DataConfig, generate, input_name)
+                                    DataConfig, estimate, generate, input_name, plan, project)
 from ppmrecon.train.dataset import PatchSampler, load_split  # noqa: E402
 
 TINY = DataConfig(scenes=2, first_seed=1, validation_every=2, resolution=(24, 24), photons=2048,
@@ -570,3 +570,56 @@ def test_chooser_config_errors_are_one_line(tiny_data, tmp_path):
     with pytest.raises(UsageError, match="smaller than the crop"):
         train_cli.main(["chooser", str(root), "--out", str(tmp_path / "r"), "--config",
                         str(_chooser_config(tmp_path, crop=32)), "--quiet"])
+
+
+def test_projection_of_a_data_set_cost_counts_first_passes_chunks_and_finished_items():
+    """generate --estimate's arithmetic: every item pays its first pass, then its other
+    passes at the timed rate; each reference chunk pays a first pass of its own; a family's
+    timings stand for all its scenes; finished items leave the remaining cost."""
+    cfg = replace(TINY, scenes=4, families=("caustics", "glossy"), reference_chunks=2)
+    t = {"caustics": {"input_first_seconds": 2.0, "input_pass_seconds": 0.5,
+                      "reference_first_seconds": 3.0, "reference_pass_seconds": 0.25},
+         "glossy": {"input_first_seconds": 1.0, "input_pass_seconds": 1.0,
+                    "reference_first_seconds": 1.0, "reference_pass_seconds": 1.0}}
+    scenes = plan(cfg)
+    done = {scenes[0]["id"]: {"inputs_s0", "reference_a_c01"}}
+    p = project(cfg, t, workers=2, done=done)
+    n_in, (c1, c2) = max(cfg.input_passes), ((1, 32), (33, 64))
+    caustics = 2 * (2.0 + (n_in - 1) * 0.5) + 2 * ((3.0 + (c1[1] - c1[0]) * 0.25) + (3.0 + (c2[1] - c2[0]) * 0.25))
+    glossy = 2 * (1.0 + (n_in - 1)) + 2 * ((1.0 + 31) + (1.0 + 31))
+    assert p["families"]["caustics"]["scene_seconds"] == pytest.approx(caustics)
+    assert set(p["families"]["glossy"]["items"]) == {"inputs_s0", "inputs_s1", "reference_a_c01", "reference_a_c02",
+                                                     "reference_b_c01", "reference_b_c02"}
+    assert p["worker_seconds"] == pytest.approx(2 * caustics + 2 * glossy)
+    assert p["wall_seconds"] == pytest.approx(p["worker_seconds"] / 2)
+    assert p["input_seconds"] == pytest.approx(2 * 2 * (2.0 + 3 * 0.5) + 2 * 2 * (1.0 + 3))
+    assert p["remaining_worker_seconds"] == pytest.approx(p["worker_seconds"] - (2.0 + 3 * 0.5) - (3.0 + 31 * 0.25))
+    assert p["items_done"] == 2
+    unchunked = project(replace(cfg, reference_chunks=1), t)
+    assert unchunked["families"]["caustics"]["items"]["reference_b"] == pytest.approx(3.0 + 63 * 0.25)
+
+
+def test_estimate_times_each_family_writes_nothing_and_sees_a_finished_data_set(tiny_data, tmp_path, capsys):
+    root, _ = tiny_data
+    before = sorted(p.name for p in root.rglob("*"))
+    est = estimate(TINY, passes=1, workers=1, out=root, quiet=True)
+    assert sorted(p.name for p in root.rglob("*")) == before
+    assert set(est["families"]) == {s["family"] for s in plan(TINY)}
+    for f in est["families"].values():
+        assert f["input_first_seconds"] > 0 and f["input_pass_seconds"] > 0
+        assert f["reference_first_seconds"] > 0 and f["reference_pass_seconds"] > 0
+    assert est["worker_seconds"] > 0 and est["items_done"] == 4 * TINY.scenes
+    assert est["remaining_worker_seconds"] == 0.0
+    # the CLI: a table and one summary line; --out is only needed without --estimate
+    assert train_cli.main(["generate", "--config", "tiny", "--estimate", "--estimate-passes", "1", "--workers", "1",
+                           "--quiet"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert out[1].split()[0] == "family" and len(out) == 3 + len(plan(DataConfig.load(CONFIGS_DIR / "data" / "tiny.json")))
+    assert "of worker time" in out[-1]
+    with pytest.raises(UsageError, match="--out is required"):
+        train_cli.main(["generate", "--config", "tiny"])
+    with pytest.raises(UsageError, match="does not take --ray"):
+        train_cli.main(["generate", "--config", "tiny", "--estimate", "--ray", "local"])
+    with pytest.raises(UsageError, match="another configuration"):
+        estimate(replace(TINY, photons=4096), passes=1, out=root, quiet=True)
+

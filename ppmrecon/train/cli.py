@@ -2,6 +2,7 @@
 
     ppmrecon-train generate --config v2_cpu --out data/v2_cpu [--workers 2]
     ppmrecon-train generate --config v2 --out data/v2 --ray auto [--reference-chunks 8]
+    ppmrecon-train generate --config v2 --estimate [--out data/v2]   (what it would take here)
     ppmrecon-train fit data/cpu --out runs/cpu [--config cpu] [--resume]
     torchrun --nproc-per-node 2 -m ppmrecon.train fit data/cpu --out runs/cpu [--ddp]
     ppmrecon-train fit data/cpu --out runs/cpu --ddp --nproc-per-node 2   (torchrun --standalone for you)
@@ -62,7 +63,8 @@ def build_parser() -> ArgumentParser:
                    help=f"data-set budgets: a JSON file or a shipped set ({', '.join(builtin_configs('data'))}; "
                         "default: cpu; the issue-12 sets are v2 and v2_cpu, holdout the scenes no rule was tuned "
                         "on, and holdout_n1024 such scenes up to N = 1024)")
-    g.add_argument("--out", type=Path, required=True, help="output folder (manifest.json + one folder per scene)")
+    g.add_argument("--out", type=Path, default=None,
+                   help="output folder (manifest.json + one folder per scene); required unless --estimate")
     g.add_argument("--workers", type=positive_int, default=2, help="parallel worker processes (default: 2; not used with --ray)")
     g.add_argument("--ray", metavar="auto|local|ADDRESS", default=None,
                    help="run the work items as Ray tasks instead of local processes: 'auto' joins the "
@@ -83,6 +85,12 @@ def build_parser() -> ArgumentParser:
     g.add_argument("--families", default=None,
                    help="comma-separated scene families, overriding the config's (default: the config's; "
                         "see ppmrecon.train.scenegen)")
+    g.add_argument("--estimate", action="store_true",
+                   help="render nothing into --out: time a few passes of one input seed and one reference half "
+                        "of the first scene of each family, with --workers processes at once, and print what the "
+                        "whole data set (and, with an existing --out, what is left of it) would take on this machine")
+    g.add_argument("--estimate-passes", type=positive_int, default=8,
+                   help="passes timed per item after its first (default: 8)")
     g.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
     f = sub.add_parser("fit", help="train a model on a generated data set",
@@ -142,6 +150,37 @@ def _warn(msg: str) -> None:
     sys.stderr.write(f"{PROG}: warning: {msg}\n")
 
 
+def _hours(seconds: float) -> str:
+    """A duration in the unit that reads best: s, min or h."""
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min" if seconds < 7200 else f"{seconds / 3600:.1f} h"
+
+
+def _estimate(cfg, args: argparse.Namespace) -> int:
+    """``generate --estimate``: the measured cost of the data set, one row per family."""
+    from .datagen import estimate
+
+    est = estimate(cfg, passes=args.estimate_passes, workers=args.workers, out=args.out, quiet=args.quiet)
+    name = Path(args.config).stem if args.config else "cpu"
+    print(f"{PROG} generate --estimate: config {name}, {est['scenes']} scenes at {cfg.resolution[0]}x"
+          f"{cfg.resolution[1]}; {est['workers']} worker(s) of {est['threads']} Dr.Jit thread(s), "
+          f"{est['passes_timed']} passes timed per item after its first")
+    print(f"{'family':24s} {'input s/pass':>12s} {'reference s/pass':>16s} {'first pass s':>13s} {'scene (worker-s)':>17s}")
+    for family, f in est["families"].items():
+        print(f"{family:24s} {f['input_pass_seconds']:12.4f} {f['reference_pass_seconds']:16.4f} "
+              f"{max(f['input_first_seconds'], f['reference_first_seconds']):13.2f} {f['scene_seconds']:17.0f}")
+    line = (f"{PROG}: whole data set: {_hours(est['worker_seconds'])} of worker time (inputs "
+            f"{_hours(est['input_seconds'])}, references {_hours(est['reference_seconds'])}), about "
+            f"{_hours(est['wall_seconds'])} with {est['workers']} worker(s) on this machine")
+    if args.out is not None:
+        line += (f"; {args.out}: {est['items_done']} items finished, "
+                 f"{_hours(est['remaining_worker_seconds'])} of worker time left "
+                 f"(about {_hours(est['remaining_wall_seconds'])})")
+    print(line)
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -160,6 +199,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args.reference_chunks:
             cfg.reference_chunks = args.reference_chunks
             cfg.validate(f"--reference-chunks {args.reference_chunks}")
+        if args.estimate:
+            if args.ray:
+                raise UsageError("--estimate times the work items on this machine: it does not take --ray")
+            return _estimate(cfg, args)
+        if args.out is None:
+            raise UsageError("generate: --out is required (the data set's folder), unless --estimate")
         runner = None
         if args.ray:
             from .raygen import RayRunner

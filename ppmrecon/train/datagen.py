@@ -45,6 +45,9 @@ run (:meth:`..render.integrator.Renderer.start_at`), so the merged mean *is* the
 single run's estimate, up to float32 rounding of the running mean (not a mean of
 independent shorter runs, which would carry the larger bias of the shorter run).
 The manifest records scene parameters, budgets, file names and per-item wall times.
+:func:`estimate` (``generate --estimate``) measures what a configuration would cost on the
+machine at hand before any of it is rendered: a few timed passes of each family's first
+scene, projected over every item (:func:`project`).
 Manifest version 2 adds the reference halves, their agreement, firefly counts and the
 ``items`` table; readers take version 1 too (:mod:`.dataset` needs only
 ``reference.exr`` and the inputs), and a version-1 data set can be completed with a
@@ -252,6 +255,30 @@ def describe_item(res: dict[str, Any]) -> str:
     return f"{res['id']} {_item_key(res['kind'], res.get('seed'), res.get('half'), res.get('chunk'))}"
 
 
+def item_settings(job: dict[str, Any], cfg: "DataConfig", passes: int) -> Any:
+    """The render settings of work item ``job`` run to pass ``passes``: an input seed's
+    five-chain render at ``photons`` per pass, or a reference half's single-bandwidth SPPM
+    render at ``reference_photons`` with its own random stream (:data:`REFERENCE_SEED_BASE`)."""
+    from ..render.integrator import RenderSettings
+
+    if job["kind"] == "reference":
+        return RenderSettings(passes=passes, photons=cfg.reference_photons,
+                              seed=REFERENCE_SEED_BASE[job["half"]] + job["scene_seed"], layout="single",
+                              max_depth=cfg.max_depth)
+    return RenderSettings(passes=passes, photons=cfg.photons, seed=job["seed"] * 7919 + job["scene_seed"],
+                          max_depth=cfg.max_depth)
+
+
+def _time_item(job: dict[str, Any], renderer: Any) -> dict[str, Any]:
+    """Time ``renderer``'s first pass (compilation, the k-NN initial radii) and
+    ``job["estimate"]`` passes after it; nothing is written."""
+    renderer.run_pass()
+    first = renderer.seconds
+    for _ in range(job["estimate"]):
+        renderer.run_pass()
+    return {**_job_ids(job), "first_seconds": first, "pass_seconds": (renderer.seconds - first) / job["estimate"]}
+
+
 def work_item(job: dict[str, Any]) -> dict[str, Any]:
     """Render one item (in a worker process or Ray task) into ``job["folder"]``: all
     snapshots of one input seed, one reference render, or one chunk of a reference's
@@ -267,25 +294,27 @@ def work_item(job: dict[str, Any]) -> dict[str, Any]:
 
     if job.get("threads"):
         dr.set_thread_count(job["threads"])
-    from ..render.integrator import Renderer, RenderSettings
+    from ..render.integrator import Renderer
     from .scenegen import build_scene
 
     cfg = DataConfig(**job["config"])
-    folder = Path(job["folder"])
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = None if job.get("estimate") else Path(job["folder"])   # a timing run writes nothing
     t0 = time.perf_counter()
     scene = mi.load_dict(build_scene(job["params"], *cfg.resolution))
     name = f"generated:{job['id']}"
+    if folder is None:
+        return _time_item(job, Renderer(scene, item_settings(job, cfg, job["estimate"] + 1), scene_name=name))
+    folder.mkdir(parents=True, exist_ok=True)
     files: list[dict[str, Any]] = []
     if job["kind"] == "reference":
         half, chunk = job["half"], job.get("chunk")
-        seed = REFERENCE_SEED_BASE[half] + job["scene_seed"]
         first, last = ((1, cfg.reference_passes) if chunk is None
                        else reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)[chunk])
-        r = Renderer(scene, RenderSettings(passes=last, photons=cfg.reference_photons,
-                                           seed=seed, layout="single", max_depth=cfg.max_depth), scene_name=name)
+        settings = item_settings(job, cfg, last)
+        r = Renderer(scene, settings, scene_name=name)
         r.start_at(first)
         res = r.run()
+        seed = settings.seed
         entry = {"photons": cfg.reference_photons, "seed": seed, "seconds": res.seconds}
         if chunk is None:
             fname = reference_files(cfg)[half]
@@ -301,9 +330,7 @@ def work_item(job: dict[str, Any]) -> dict[str, Any]:
         render_seconds = res.seconds
     else:
         seed = job["seed"]
-        r = Renderer(scene, RenderSettings(passes=max(cfg.input_passes), photons=cfg.photons,
-                                           seed=seed * 7919 + job["scene_seed"], max_depth=cfg.max_depth),
-                     scene_name=name)
+        r = Renderer(scene, item_settings(job, cfg, max(cfg.input_passes)), scene_name=name)
         snapshots = set(cfg.input_passes)
 
         def on_pass(rr: Renderer) -> None:
@@ -497,6 +524,20 @@ def _record(s: dict[str, Any], res: dict[str, Any], cfg: DataConfig) -> None:
     s["seconds"] = s.get("seconds", 0.0) + res["wall_seconds"]
 
 
+def _existing_manifest(mpath: Path, cfg: DataConfig) -> dict[str, Any]:
+    """The manifest at ``mpath`` of a data set that ``cfg`` may complete or grow; one line
+    (UsageError) where it was generated with another configuration or has more scenes."""
+    old = load_manifest(mpath.parent)
+    stored, wanted = stored_config(old), _as_json(asdict(cfg))
+    if {**stored, "scenes": 0} != {**wanted, "scenes": 0}:
+        raise UsageError(f"{mpath}: the data set was generated with another configuration; "
+                         "use a new --out folder")
+    if wanted["scenes"] < stored["scenes"]:
+        raise UsageError(f"{mpath}: the data set has {stored['scenes']} scenes; --scenes "
+                         f"{wanted['scenes']} would drop some (it can only grow)")
+    return old
+
+
 def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: bool = False,
              runner: Runner | None = None) -> dict[str, Any]:
     """Generate (or complete) the data set ``out`` for ``cfg``; returns the manifest.
@@ -511,14 +552,7 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
     scenes = plan(cfg)
     manifest: dict[str, Any] = {"version": MANIFEST_VERSION, "config": asdict(cfg), "scenes": scenes}
     if mpath.exists():
-        old = load_manifest(root)
-        stored, wanted = stored_config(old), _as_json(asdict(cfg))
-        if {**stored, "scenes": 0} != {**wanted, "scenes": 0}:
-            raise UsageError(f"{mpath}: the data set was generated with another configuration; "
-                             "use a new --out folder")
-        if wanted["scenes"] < stored["scenes"]:
-            raise UsageError(f"{mpath}: the data set has {stored['scenes']} scenes; --scenes "
-                             f"{wanted['scenes']} would drop some (it can only grow)")
+        old = _existing_manifest(mpath, cfg)
         manifest["generation_seconds"] = old.get("generation_seconds", 0.0)
         done = {s["id"]: s for s in old["scenes"]}
         for s in scenes:
@@ -591,3 +625,79 @@ def generate(cfg: DataConfig, out: str | os.PathLike, workers: int = 1, quiet: b
                               f"{first.get('attempts') or 1} attempt(s): {first['error']}{more}; "
                               "rerun the same command to retry")
     return manifest
+
+
+def project(cfg: DataConfig, timings: dict[str, dict[str, float]], workers: int = 1,
+            done: dict[str, set[str]] | None = None) -> dict[str, Any]:
+    """The cost of generating ``cfg`` from per-family timings (family -> ``input_first_seconds``,
+    ``input_pass_seconds``, ``reference_first_seconds``, ``reference_pass_seconds``): an item
+    costs its first pass (compilation, the k-NN initial radii; paid again by every reference
+    chunk, which starts from its own pass) plus its other passes at the timed rate, and every
+    scene of a family what the family's timings say. ``done`` (scene id -> finished item
+    keys, as a manifest's ``items``) leaves items out of the remaining cost. Wall times
+    assume ``workers`` items at once, all busy."""
+    done = done or {}
+    chunks = reference_chunk_bounds(cfg.reference_passes, cfg.reference_chunks)
+    families: dict[str, dict[str, Any]] = {}
+    for family, t in timings.items():
+        items = {_item_key("inputs", seed): t["input_first_seconds"]
+                 + (max(cfg.input_passes) - 1) * t["input_pass_seconds"] for seed in cfg.seeds}
+        for half in range(cfg.references):
+            for c, (first, last) in enumerate(chunks):
+                key = _item_key("reference", half=half, chunk=None if cfg.reference_chunks == 1 else c)
+                items[key] = t["reference_first_seconds"] + (last - first) * t["reference_pass_seconds"]
+        families[family] = {**t, "items": items, "scene_seconds": sum(items.values())}
+    total = inputs = remaining = 0.0
+    scenes = plan(cfg)
+    for s in scenes:
+        for key, seconds in families[s["family"]]["items"].items():
+            total += seconds
+            inputs += seconds if key.startswith("inputs") else 0.0
+            remaining += 0.0 if key in done.get(s["id"], set()) else seconds
+    return {"families": families, "scenes": len(scenes), "workers": workers, "worker_seconds": total,
+            "input_seconds": inputs, "reference_seconds": total - inputs, "remaining_worker_seconds": remaining,
+            "items_done": sum(len(v) for v in done.values()), "wall_seconds": total / workers,
+            "remaining_wall_seconds": remaining / workers}
+
+
+def estimate(cfg: DataConfig, passes: int = 8, workers: int = 1, out: str | os.PathLike | None = None,
+             quiet: bool = False, runner: Runner | None = None) -> dict[str, Any]:
+    """What generating ``cfg`` would cost on this machine, measured, not guessed
+    (:func:`project` of timed passes).
+
+    The first scene of each family (its photon paths, and so its pass cost, depend on the
+    family more than on the seed) renders one input seed and one reference half for its
+    first pass plus ``passes`` passes, in ``workers`` processes at once as ``generate`` runs
+    them. With ``out`` (an existing data set of the same configuration) the items its
+    manifest records as finished are left out of the remaining cost. Snapshot and reference
+    writes are not timed, nor the pass cost's drift as the radii shrink: a projection, to
+    be checked against finished items' ``wall_seconds`` in a manifest."""
+    runner = runner or LocalRunner(workers)
+    cfg.validate()
+    done: dict[str, set[str]] = {}
+    if out is not None and (Path(out) / MANIFEST).exists():
+        old = _existing_manifest(Path(out) / MANIFEST, cfg)
+        done = {s["id"]: {k for k, v in s.get("items", {}).items() if "failed" not in v} for s in old["scenes"]}
+    sample: dict[str, dict[str, Any]] = {}
+    for s in plan(cfg):
+        sample.setdefault(s["family"], s)
+    jobs = [{"kind": kind, "seed": cfg.seeds[0], "half": 0, "estimate": passes, "id": s["id"],
+             "scene_seed": s["seed"], "params": s["params"], "config": asdict(cfg), "threads": runner.threads}
+            for s in sample.values() for kind in ("inputs", "reference")]
+    progress = Progress(f"ppmrecon-train generate --estimate ({runner.label})", total=len(jobs), quiet=quiet)
+    timed: dict[tuple[str, str], dict[str, Any]] = {}
+    for k, res in enumerate(runner.run(jobs), 1):
+        if "error" in res:
+            raise GenerationError(f"--estimate: timing {res['id']} {res['kind']} failed: {res['error']}")
+        timed[(res["id"], res["kind"])] = res
+        progress.update(k, force=True, scene=res["id"])
+    progress.close()
+    timings = {}
+    for family, s in sample.items():
+        t_in, t_ref = timed[(s["id"], "inputs")], timed[(s["id"], "reference")]
+        timings[family] = {"scene": s["id"], "input_first_seconds": t_in["first_seconds"],
+                           "input_pass_seconds": t_in["pass_seconds"],
+                           "reference_first_seconds": t_ref["first_seconds"],
+                           "reference_pass_seconds": t_ref["pass_seconds"]}
+    return {"config": asdict(cfg), "passes_timed": passes, "threads": runner.threads,
+            **project(cfg, timings, getattr(runner, "workers", 1), done)}
