@@ -602,7 +602,7 @@ def test_projection_of_a_data_set_cost_counts_first_passes_chunks_and_finished_i
 def test_estimate_times_each_family_writes_nothing_and_sees_a_finished_data_set(tiny_data, tmp_path, capsys):
     root, _ = tiny_data
     before = sorted(p.name for p in root.rglob("*"))
-    est = estimate(TINY, passes=1, workers=1, out=root, quiet=True)
+    est = estimate(TINY, seconds=0.2, workers=2, out=root, quiet=True)
     assert sorted(p.name for p in root.rglob("*")) == before
     assert set(est["families"]) == {s["family"] for s in plan(TINY)}
     for f in est["families"].values():
@@ -610,8 +610,12 @@ def test_estimate_times_each_family_writes_nothing_and_sees_a_finished_data_set(
         assert f["reference_first_seconds"] > 0 and f["reference_pass_seconds"] > 0
     assert est["worker_seconds"] > 0 and est["items_done"] == 4 * TINY.scenes
     assert est["remaining_worker_seconds"] == 0.0
+    manifest = json.loads((root / "manifest.json").read_text())
+    took = sum(i["wall_seconds"] for s in manifest["scenes"] for i in s["items"].values())
+    assert est["finished_seconds"] == pytest.approx(took)
+    assert est["finished_projected_seconds"] == pytest.approx(est["worker_seconds"])
     # the CLI: a table and one summary line; --out is only needed without --estimate
-    assert train_cli.main(["generate", "--config", "tiny", "--estimate", "--estimate-passes", "1", "--workers", "1",
+    assert train_cli.main(["generate", "--config", "tiny", "--estimate", "--estimate-seconds", "0.1", "--workers", "1",
                            "--quiet"]) == 0
     out = capsys.readouterr().out.splitlines()
     assert out[1].split()[0] == "family" and len(out) == 3 + len(plan(DataConfig.load(CONFIGS_DIR / "data" / "tiny.json")))
@@ -621,5 +625,5 @@ def test_estimate_times_each_family_writes_nothing_and_sees_a_finished_data_set(
     with pytest.raises(UsageError, match="does not take --ray"):
         train_cli.main(["generate", "--config", "tiny", "--estimate", "--ray", "local"])
     with pytest.raises(UsageError, match="another configuration"):
-        estimate(replace(TINY, photons=4096), passes=1, out=root, quiet=True)
+        estimate(replace(TINY, photons=4096), seconds=0.1, out=root, quiet=True)
 

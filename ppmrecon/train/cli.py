@@ -87,10 +87,10 @@ def build_parser() -> ArgumentParser:
                         "see ppmrecon.train.scenegen)")
     g.add_argument("--estimate", action="store_true",
                    help="render nothing into --out: time a few passes of one input seed and one reference half "
-                        "of the first scene of each family, with --workers processes at once, and print what the "
+                        "of the first scene of each family, --workers processes at once, and print what the "
                         "whole data set (and, with an existing --out, what is left of it) would take on this machine")
-    g.add_argument("--estimate-passes", type=positive_int, default=8,
-                   help="passes timed per item after its first (default: 8)")
+    g.add_argument("--estimate-seconds", type=positive_float, default=5.0,
+                   help="seconds of passes timed per item after its first (default: 5)")
     g.add_argument("--quiet", "-q", action="store_true", help="no progress bar")
 
     f = sub.add_parser("fit", help="train a model on a generated data set",
@@ -161,11 +161,11 @@ def _estimate(cfg, args: argparse.Namespace) -> int:
     """``generate --estimate``: the measured cost of the data set, one row per family."""
     from .datagen import estimate
 
-    est = estimate(cfg, passes=args.estimate_passes, workers=args.workers, out=args.out, quiet=args.quiet)
+    est = estimate(cfg, seconds=args.estimate_seconds, workers=args.workers, out=args.out, quiet=args.quiet)
     name = Path(args.config).stem if args.config else "cpu"
     print(f"{PROG} generate --estimate: config {name}, {est['scenes']} scenes at {cfg.resolution[0]}x"
           f"{cfg.resolution[1]}; {est['workers']} worker(s) of {est['threads']} Dr.Jit thread(s), "
-          f"{est['passes_timed']} passes timed per item after its first")
+          f"{est['seconds_timed']:g} s of passes timed per item after its first")
     print(f"{'family':24s} {'input s/pass':>12s} {'reference s/pass':>16s} {'first pass s':>13s} {'scene (worker-s)':>17s}")
     for family, f in est["families"].items():
         print(f"{family:24s} {f['input_pass_seconds']:12.4f} {f['reference_pass_seconds']:16.4f} "
@@ -178,6 +178,10 @@ def _estimate(cfg, args: argparse.Namespace) -> int:
                  f"{_hours(est['remaining_worker_seconds'])} of worker time left "
                  f"(about {_hours(est['remaining_wall_seconds'])})")
     print(line)
+    if est["finished_projected_seconds"] > 0:
+        print(f"{PROG}: the finished items took {_hours(est['finished_seconds'])} against "
+              f"{_hours(est['finished_projected_seconds'])} projected "
+              f"({est['finished_seconds'] / est['finished_projected_seconds']:.2f}x)")
     return 0
 
 

@@ -56,13 +56,15 @@ config that keeps the version-1 values of the new keys (``LEGACY_CONFIG``).
 
 from __future__ import annotations
 
+import contextlib
 import json
 import multiprocessing as mp
 import os
+import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Iterator, Protocol
+from typing import Any, Callable, Iterator, Protocol
 
 import numpy as np
 
@@ -81,6 +83,8 @@ REFERENCE = "reference.exr"
 REFERENCE_HALVES = ("reference_a.exr", "reference_b.exr")
 #: Random streams of the two reference renders (half a keeps the version-1 seed).
 REFERENCE_SEED_BASE = (10_000, 1_000_000)
+#: How long a timing item of ``estimate`` waits for the others of its round to be ready.
+BARRIER_SECONDS = 300.0
 #: Worst fraction of pixels left out of the trimmed agreement (SPEC section 7).
 AGREEMENT_TRIM = 1e-3
 #: Values of the keys added in manifest version 2 that make exactly a version-1 data set.
@@ -269,14 +273,31 @@ def item_settings(job: dict[str, Any], cfg: "DataConfig", passes: int) -> Any:
                           max_depth=cfg.max_depth)
 
 
-def _time_item(job: dict[str, Any], renderer: Any) -> dict[str, Any]:
-    """Time ``renderer``'s first pass (compilation, the k-NN initial radii) and
-    ``job["estimate"]`` passes after it; nothing is written."""
-    renderer.run_pass()
-    first = renderer.seconds
-    for _ in range(job["estimate"]):
-        renderer.run_pass()
-    return {**_job_ids(job), "first_seconds": first, "pass_seconds": (renderer.seconds - first) / job["estimate"]}
+def _time_item(job: dict[str, Any], make: Callable[[], Any], passes: int) -> dict[str, Any]:
+    """Time an item's first pass (compilation, the k-NN initial radii) on a renderer from
+    ``make()``, then, on a second one placed halfway through the item's ``passes``
+    (:meth:`Renderer.start_at`: the first passes' larger radii gather more photons, so
+    they cost more than the bulk of a long render) and after one untimed pass, passes for
+    ``job["estimate"]`` seconds (at least two); nothing is written. With ``job["barrier"]``
+    the items running at once start their timed passes together, so that they share the
+    cores as ``generate``'s workers do (one core's rate would flatter a busy machine)."""
+    first = make()
+    first.run_pass()
+    bulk = make()
+    bulk.start_at(max(1, passes // 2))
+    bulk.run_pass()
+    barrier = job.get("barrier")
+    if barrier is not None:
+        try:
+            barrier.wait(timeout=BARRIER_SECONDS)
+        except threading.BrokenBarrierError:      # the last round may hold fewer items than workers
+            pass
+    start, stop, timed = bulk.seconds, time.perf_counter() + job["estimate"], 0
+    while timed < 2 or time.perf_counter() < stop:
+        bulk.run_pass()
+        timed += 1
+    return {**_job_ids(job), "first_seconds": first.seconds, "pass_seconds": (bulk.seconds - start) / timed,
+            "passes_timed": timed}
 
 
 def work_item(job: dict[str, Any]) -> dict[str, Any]:
@@ -303,7 +324,8 @@ def work_item(job: dict[str, Any]) -> dict[str, Any]:
     scene = mi.load_dict(build_scene(job["params"], *cfg.resolution))
     name = f"generated:{job['id']}"
     if folder is None:
-        return _time_item(job, Renderer(scene, item_settings(job, cfg, job["estimate"] + 1), scene_name=name))
+        passes = cfg.reference_passes if job["kind"] == "reference" else max(cfg.input_passes)
+        return _time_item(job, lambda: Renderer(scene, item_settings(job, cfg, passes), scene_name=name), passes)
     folder.mkdir(parents=True, exist_ok=True)
     files: list[dict[str, Any]] = []
     if job["kind"] == "reference":
@@ -660,38 +682,47 @@ def project(cfg: DataConfig, timings: dict[str, dict[str, float]], workers: int 
             "remaining_wall_seconds": remaining / workers}
 
 
-def estimate(cfg: DataConfig, passes: int = 8, workers: int = 1, out: str | os.PathLike | None = None,
+def estimate(cfg: DataConfig, seconds: float = 5.0, workers: int = 1, out: str | os.PathLike | None = None,
              quiet: bool = False, runner: Runner | None = None) -> dict[str, Any]:
     """What generating ``cfg`` would cost on this machine, measured, not guessed
     (:func:`project` of timed passes).
 
     The first scene of each family (its photon paths, and so its pass cost, depend on the
-    family more than on the seed) renders one input seed and one reference half for its
-    first pass plus ``passes`` passes, in ``workers`` processes at once as ``generate`` runs
-    them. With ``out`` (an existing data set of the same configuration) the items its
-    manifest records as finished are left out of the remaining cost. Snapshot and reference
-    writes are not timed, nor the pass cost's drift as the radii shrink: a projection, to
-    be checked against finished items' ``wall_seconds`` in a manifest."""
+    family more than on the seed) renders one input seed and one reference half: its first
+    pass, then passes from halfway through the item for ``seconds`` (:func:`_time_item`), in
+    ``workers`` processes that start their timed passes together (a local pool), so the
+    cores are shared as ``generate`` shares them.
+    With ``out`` (an existing data set of the same configuration) the items its manifest
+    records as finished are left out of the remaining cost, and what they took
+    (``finished_seconds``, their manifest's ``wall_seconds``) is set beside what the
+    projection says of them (``finished_projected_seconds``). Snapshot and reference writes
+    are not timed (under a second an item): a projection."""
     runner = runner or LocalRunner(workers)
     cfg.validate()
-    done: dict[str, set[str]] = {}
+    finished: dict[str, dict[str, float]] = {}          # scene id -> item key -> its wall seconds
     if out is not None and (Path(out) / MANIFEST).exists():
         old = _existing_manifest(Path(out) / MANIFEST, cfg)
-        done = {s["id"]: {k for k, v in s.get("items", {}).items() if "failed" not in v} for s in old["scenes"]}
+        finished = {s["id"]: {k: v.get("wall_seconds", 0.0) for k, v in s.get("items", {}).items() if "failed" not in v}
+                    for s in old["scenes"]}
     sample: dict[str, dict[str, Any]] = {}
     for s in plan(cfg):
         sample.setdefault(s["family"], s)
-    jobs = [{"kind": kind, "seed": cfg.seeds[0], "half": 0, "estimate": passes, "id": s["id"],
-             "scene_seed": s["seed"], "params": s["params"], "config": asdict(cfg), "threads": runner.threads}
-            for s in sample.values() for kind in ("inputs", "reference")]
-    progress = Progress(f"ppmrecon-train generate --estimate ({runner.label})", total=len(jobs), quiet=quiet)
-    timed: dict[tuple[str, str], dict[str, Any]] = {}
-    for k, res in enumerate(runner.run(jobs), 1):
-        if "error" in res:
-            raise GenerationError(f"--estimate: timing {res['id']} {res['kind']} failed: {res['error']}")
-        timed[(res["id"], res["kind"])] = res
-        progress.update(k, force=True, scene=res["id"])
-    progress.close()
+    parallel = getattr(runner, "workers", 1)
+    with contextlib.ExitStack() as stack:
+        barrier = None
+        if isinstance(runner, LocalRunner) and parallel > 1:
+            barrier = stack.enter_context(mp.get_context("spawn").Manager()).Barrier(parallel)
+        jobs = [{"kind": kind, "seed": cfg.seeds[0], "half": 0, "estimate": seconds, "id": s["id"],
+                 "scene_seed": s["seed"], "params": s["params"], "config": asdict(cfg), "threads": runner.threads,
+                 "barrier": barrier} for s in sample.values() for kind in ("inputs", "reference")]
+        progress = Progress(f"ppmrecon-train generate --estimate ({runner.label})", total=len(jobs), quiet=quiet)
+        timed: dict[tuple[str, str], dict[str, Any]] = {}
+        for k, res in enumerate(runner.run(jobs), 1):
+            if "error" in res:
+                raise GenerationError(f"--estimate: timing {res['id']} {res['kind']} failed: {res['error']}")
+            timed[(res["id"], res["kind"])] = res
+            progress.update(k, force=True, scene=res["id"])
+        progress.close()
     timings = {}
     for family, s in sample.items():
         t_in, t_ref = timed[(s["id"], "inputs")], timed[(s["id"], "reference")]
@@ -699,5 +730,10 @@ def estimate(cfg: DataConfig, passes: int = 8, workers: int = 1, out: str | os.P
                            "input_pass_seconds": t_in["pass_seconds"],
                            "reference_first_seconds": t_ref["first_seconds"],
                            "reference_pass_seconds": t_ref["pass_seconds"]}
-    return {"config": asdict(cfg), "passes_timed": passes, "threads": runner.threads,
-            **project(cfg, timings, getattr(runner, "workers", 1), done)}
+    result = project(cfg, timings, parallel, {i: set(v) for i, v in finished.items()})
+    family = {s["id"]: s["family"] for s in plan(cfg)}
+    # the projection checked against what the finished items took
+    result["finished_seconds"] = sum(t for items in finished.values() for t in items.values())
+    result["finished_projected_seconds"] = sum(result["families"][family[i]]["items"].get(k, 0.0)
+                                               for i, items in finished.items() for k in items)
+    return {"config": asdict(cfg), "seconds_timed": seconds, "threads": runner.threads, **result}
