@@ -8,7 +8,9 @@
 #   SITE=site.tar.xz benchmarks/gpu_session.sh            # unpack carried packages first
 #
 # Stages (seconds, at most): probe 60, renderer tests 120, render timings 225, data generation
-# 130, training 2 x 45 (the second resumes the first): under 10 minutes in all.
+# 130, training 2 x 45 (the second resumes the first): under 10 minutes in all. Not in the
+# default run: estimate 150 (what configs/data/v2.json would take there, measured by
+# `ppmrecon-train generate --estimate`; STAGES=estimate, ESTIMATE_WORKERS=N).
 set -u
 GPU_VARIANT=${GPU_VARIANT:-cuda_ad_rgb}   # llvm_ad_rgb + TORCH_DEVICE=cpu: a dry run of the plumbing on a CPU
 TORCH_DEVICE=${TORCH_DEVICE:-cuda}
@@ -127,6 +129,12 @@ m = Path(sys.argv[1]) / "manifest.json"
 if m.exists():
     print(json.dumps(json.loads(m.read_text()), indent=None)[:6000])
 EOF
+fi
+
+if wants estimate; then
+stage "the full training set's cost on $GPU_VARIANT (ppmrecon-train generate --config v2 --estimate)"
+PPMRECON_VARIANT=$GPU_VARIANT timeout 150 ppmrecon-train generate --config v2 --estimate --workers "${ESTIMATE_WORKERS:-2}" -q
+echo "estimate rc=$?"
 fi
 
 if wants train; then
