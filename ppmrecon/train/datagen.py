@@ -64,7 +64,7 @@ import threading
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterator, Protocol
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Protocol
 
 import numpy as np
 
@@ -74,6 +74,9 @@ from ..errors import PpmreconError, UsageError
 from ..fileio import load_json_config, read_json, write_json
 from ..metrics import firefly_mask, relmse, relmse_trimmed
 from .scenegen import FAMILIES, LEGACY_FAMILIES, RADIANCE_LOG10, family_of, sample_params
+
+if TYPE_CHECKING:                      # Mitsuba is imported in the worker processes only
+    from ..render.integrator import Renderer, RenderSettings
 
 MANIFEST = "manifest.json"
 #: Chunk files: the Welford state of a range of a reference's passes (see module doc).
@@ -259,7 +262,7 @@ def describe_item(res: dict[str, Any]) -> str:
     return f"{res['id']} {_item_key(res['kind'], res.get('seed'), res.get('half'), res.get('chunk'))}"
 
 
-def item_settings(job: dict[str, Any], cfg: "DataConfig", passes: int) -> Any:
+def item_settings(job: dict[str, Any], cfg: "DataConfig", passes: int) -> "RenderSettings":
     """The render settings of work item ``job`` run to pass ``passes``: an input seed's
     five-chain render at ``photons`` per pass, or a reference half's single-bandwidth SPPM
     render at ``reference_photons`` with its own random stream (:data:`REFERENCE_SEED_BASE`)."""
@@ -273,7 +276,7 @@ def item_settings(job: dict[str, Any], cfg: "DataConfig", passes: int) -> Any:
                           max_depth=cfg.max_depth)
 
 
-def _time_item(job: dict[str, Any], make: Callable[[], Any], passes: int) -> dict[str, Any]:
+def _time_item(job: dict[str, Any], make: Callable[[], "Renderer"], passes: int) -> dict[str, Any]:
     """Time an item's first pass (compilation, the k-NN initial radii) on a renderer from
     ``make()``, then, on a second one placed halfway through the item's ``passes``
     (:meth:`Renderer.start_at`: the first passes' larger radii gather more photons, so
