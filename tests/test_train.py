@@ -626,4 +626,8 @@ def test_estimate_times_each_family_writes_nothing_and_sees_a_finished_data_set(
         train_cli.main(["generate", "--config", "tiny", "--estimate", "--ray", "local"])
     with pytest.raises(UsageError, match="another configuration"):
         estimate(replace(TINY, photons=4096), seconds=0.1, out=root, quiet=True)
+    # three workers for four items: the last round holds one, which must not wait for the others
+    t = time.perf_counter()
+    assert estimate(TINY, seconds=0.1, workers=3, quiet=True)["worker_seconds"] > 0
+    assert time.perf_counter() - t < 60.0
 

@@ -725,6 +725,8 @@ def estimate(cfg: DataConfig, seconds: float = 5.0, workers: int = 1, out: str |
                 raise GenerationError(f"--estimate: timing {res['id']} {res['kind']} failed: {res['error']}")
             timed[(res["id"], res["kind"])] = res
             progress.update(k, force=True, scene=res["id"])
+            if barrier is not None and len(jobs) - k < parallel:
+                barrier.abort()       # a last round smaller than the pool: its items need not wait
         progress.close()
     timings = {}
     for family, s in sample.items():
