@@ -707,8 +707,9 @@ def estimate(cfg: DataConfig, seconds: float = 5.0, workers: int = 1, out: str |
         old = _existing_manifest(Path(out) / MANIFEST, cfg)
         finished = {s["id"]: {k: v.get("wall_seconds", 0.0) for k, v in s.get("items", {}).items() if "failed" not in v}
                     for s in old["scenes"]}
+    scenes = plan(cfg)
     sample: dict[str, dict[str, Any]] = {}
-    for s in plan(cfg):
+    for s in scenes:
         sample.setdefault(s["family"], s)
     parallel = getattr(runner, "workers", 1)
     with contextlib.ExitStack() as stack:
@@ -736,7 +737,7 @@ def estimate(cfg: DataConfig, seconds: float = 5.0, workers: int = 1, out: str |
                            "reference_first_seconds": t_ref["first_seconds"],
                            "reference_pass_seconds": t_ref["pass_seconds"]}
     result = project(cfg, timings, parallel, {i: set(v) for i, v in finished.items()})
-    family = {s["id"]: s["family"] for s in plan(cfg)}
+    family = {s["id"]: s["family"] for s in scenes}
     # the projection checked against what the finished items took
     result["finished_seconds"] = sum(t for items in finished.values() for t in items.values())
     result["finished_projected_seconds"] = sum(result["families"][family[i]]["items"].get(k, 0.0)
