@@ -148,6 +148,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_nlm_y_k: float | None = None, guide_nlm_joint_passes: float | None = None,
             guide_nlm_joint_k: float | None = None, guide_anchor_free_dark: float | None = None,
             guide_nlm_albedo: float | None = None, guide_nlm_albedo_eps: float | None = None,
+            guide_nlm_albedo_channels: str | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -174,7 +175,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     ``guide_nlm_k`` / ``guide_nlm_radius`` / ``guide_nlm_y_passes`` / ``guide_nlm_y_k`` /
     ``guide_nlm_joint_passes`` / ``guide_nlm_joint_k`` / ``guide_nlm_albedo`` / ``guide_nlm_albedo_eps``
     as ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` /
-    ``--guide-nlm-joint-passes`` / ``--guide-nlm-joint-k`` / ``--guide-nlm-albedo`` / ``--guide-nlm-albedo-eps``;
+    ``--guide-nlm-joint-passes`` / ``--guide-nlm-joint-k`` / ``--guide-nlm-albedo`` / ``--guide-nlm-albedo-eps``,
+    and ``guide_nlm_albedo_channels`` (``mean`` or ``rgb``) as ``--guide-nlm-albedo-channels``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -227,7 +229,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     >>> bool((rgb >= 0).all())
     True
     """
-    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_denoiser, with_guide_mode,
+    from .model.cli import (guard_choice, guide_choice, torch_device, with_guide_albedo_channels,
+                            with_guide_denoiser, with_guide_mode,
                             with_guide_numbers, with_guide_quality)
     from .model.infer import denoise as run
 
@@ -242,6 +245,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                 "guide=")
     chosen = with_guide_mode(chosen, guide_mode, "denoise: guide_mode", "guide=")
     chosen = with_guide_denoiser(chosen, guide_denoiser, "denoise: guide_denoiser", "guide=")
+    chosen = with_guide_albedo_channels(chosen, guide_nlm_albedo_channels, "denoise: guide_nlm_albedo_channels",
+                                        "guide=")
     chosen = with_guide_numbers(chosen, {"y_weight": guide_y_weight, "y_spike": guide_y_spike,
                                          "anchor_settled": guide_anchor_settled, "anchor_select": guide_anchor_select,
                                          "terms_passes": guide_terms_passes, "anchor_spikes": guide_anchor_spikes,

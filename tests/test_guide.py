@@ -1024,11 +1024,47 @@ def test_nlm_image_with_albedo_averages_across_texture_and_keeps_what_it_does_no
     assert abs(float(g_aware[:, texture > 0.5].mean() - g_aware[:, texture < 0.5].mean())) < 5e-4
 
 
+def test_nlm_image_with_rgb_albedo_divides_out_a_texture_of_two_hues():
+    """nlm_image's ``albedo`` (3, H, W): a checker of two hues of one brightness (green and
+    pink, the same RGB mean) is no texture to the scalar demodulation, which stops at every
+    edge as the plain filter does; divided per channel it is, and the filter lands much closer
+    to the clean image. Where the albedo is the same at both pixels of a pair the distance is
+    the plain one: a flat saturated albedo leaves the image exactly as the plain filter does."""
+    from ppmrecon.model.guide import nlm_image
+
+    gen = torch.Generator().manual_seed(31)
+    size = 32
+    cells = (torch.arange(size)[:, None] // 2 + torch.arange(size)[None] // 2) % 2 == 0
+    green, pink = torch.tensor([0.2, 0.7, 0.3]), torch.tensor([0.7, 0.2, 0.5])
+    texture = torch.where(cells[None], green[:, None, None], pink[:, None, None])
+    irradiance = 1.0 + 0.3 * torch.linspace(0, 1, size)[None].expand(size, size)
+    clean = texture * irradiance
+    # photon noise: each channel's the same share of its own value; V the channels' mean
+    noisy = clean + 0.25 * clean * torch.randn(3, size, size, generator=gen)
+    variance = ((0.25 * clean) ** 2).mean(0)
+
+    def error(x: torch.Tensor) -> float:
+        return float(((x - clean) ** 2 / (clean ** 2 + 1e-2)).mean())
+
+    plain = nlm_image(noisy, variance, 0.7)
+    by_mean = nlm_image(noisy, variance, 0.7, albedo=texture.mean(0) + 0.05, albedo_penalty=1.0)
+    by_channel = nlm_image(noisy, variance, 0.7, albedo=texture + 0.05, albedo_penalty=1.0)
+    assert error(by_mean) > 0.9 * error(plain)
+    assert error(by_channel) < 0.75 * error(plain)
+    blue = torch.tensor([0.01, 0.01, 0.89])[:, None, None].expand(3, size, size) + 0.05
+    torch.testing.assert_close(nlm_image(noisy, variance, 0.7, albedo=blue, albedo_penalty=1.0), plain,
+                               rtol=1e-5, atol=1e-6)
+
+
 def test_nlm_albedo_setting_reaches_the_guide_flags_and_api(tmp_path, capsys):
     """GuideConfig.nlm_albedo F > 0 gives the guide's NL-means the albedo (changes the image of
     a textured buffer), 0 leaves it exactly as it was; ``--guide-nlm-albedo`` /
     ``--guide-nlm-albedo-eps`` agree with the API and the header names them; negative or not
-    a number: one clear line, exit 2; an eps of 0 is refused by the config."""
+    a number: one clear line, exit 2; an eps of 0 is refused by the config. Per channel
+    (``nlm_albedo_channels`` "rgb", ``--guide-nlm-albedo-channels``): the same image for a grey
+    albedo, another for a hued one; a name not in the list is refused."""
+    import ppmrecon
+
     buf = make_buffer(24, 24, seed=53)
     rng = np.random.default_rng(53)
     albedo = np.repeat(rng.choice([0.1, 0.8], size=(24, 24, 1)), 3, -1).astype(np.float32)
@@ -1046,6 +1082,24 @@ def test_nlm_albedo_setting_reaches_the_guide_flags_and_api(tmp_path, capsys):
     for bad in (0.0, -1.0, float("nan")):
         with pytest.raises(ValueError, match="nlm_albedo_eps"):
             replace(on, nlm_albedo_eps=bad)
+    hued = replace(buf, albedo=(albedo * np.array([1.0, 0.4, 0.7], np.float32)))
+    by_mean = denoise(hued, model, guide=replace(on, nlm_albedo=2.0)).rgb
+    by_channel = denoise(hued, model, guide=replace(on, nlm_albedo=2.0, nlm_albedo_channels="rgb")).rgb
+    assert not np.array_equal(by_mean, by_channel)
+    args = _envelope_cli(tmp_path, hued) + ["--guide-denoiser", "nlm_source", "--guide-y-weight", "2",
+                                            "--guide-nlm-albedo", "2", "--guide-nlm-albedo-channels", "rgb"]
+    assert denoise_main(args + ["-o", str(tmp_path / "rgb.exr")]) == 0
+    image, header = B.read_rgb(tmp_path / "rgb.exr")
+    assert "albedo=2(+0.05, rgb)" in header["ppmrecon.guide"]
+    np.testing.assert_array_equal(ppmrecon.denoise(hued, tmp_path / "m.pt", guide_mode="envelope",
+                                                   guide_denoiser="nlm_source", guide_y_weight=2.0,
+                                                   guide_nlm_albedo=2.0, guide_nlm_albedo_channels="rgb"), image)
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        denoise_main(args[:-1] + ["hsv", "-o", str(tmp_path / "bad.exr")])
+    assert exc.value.code == 2 and "--guide-nlm-albedo-channels" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="nlm_albedo_channels"):
+        replace(on, nlm_albedo_channels="hsv")
 
 
 def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):

@@ -39,7 +39,7 @@ from ..errors import UsageError
 from . import checkpoint
 from .features import FeatureConfig
 from .guard import DEFAULT_ON, GuardConfig
-from .guide import DEFAULT_GUIDE, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, NLM_MAX_RADIUS, OIDN_QUALITIES, GuideConfig
+from .guide import ALBEDO_CHANNELS, DEFAULT_GUIDE, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, NLM_MAX_RADIUS, OIDN_QUALITIES, GuideConfig
 from .infer import denoise
 from .kpn import DEFAULT_PRESET, load_preset, parameter_count, preset_names
 
@@ -209,6 +209,9 @@ def build_parser() -> ArgumentParser:
                         "the noise does not hide, where OIDN smooths it (README)")
     for flag, metavar, _, text in GUIDE_NUMBERS:
         p.add_argument(flag, type=float, default=None, metavar=metavar, help=text)
+    p.add_argument("--guide-nlm-albedo-channels", choices=ALBEDO_CHANNELS, default=None,
+                   help="with --guide-nlm-albedo: divide by the albedo's RGB mean ('mean') or each channel by its "
+                        "own albedo ('rgb': a texture of two hues divided out too) (default: the checkpoint's)")
     p.add_argument("--anchor", type=nonnegative_float, metavar="SIGMA",
                    help="with the guard on: width (pixels) of the low-frequency anchor to ~z^4, "
                         "0 = off (default: the guard's, 1.5)")
@@ -288,6 +291,12 @@ def with_guide_denoiser(guide: GuideConfig, denoiser: str | None, option: str, s
     """``guide`` with the guide images' denoiser ``denoiser`` (one of :data:`.guide.DENOISERS`;
     None: unchanged), errors named as :func:`with_guide_quality` names them."""
     return _with_guide_setting(guide, "denoiser", denoiser, DENOISERS, option, switch)
+
+
+def with_guide_albedo_channels(guide: GuideConfig, channels: str | None, option: str, switch: str) -> GuideConfig:
+    """``guide`` with NL-means' demodulation ``channels`` (one of :data:`.guide.ALBEDO_CHANNELS`;
+    None: unchanged), errors named as :func:`with_guide_quality` names them."""
+    return _with_guide_setting(guide, "nlm_albedo_channels", channels, ALBEDO_CHANNELS, option, switch)
 
 
 def with_guide_quality(guide: GuideConfig, quality: str | None, option: str, switch: str) -> GuideConfig:
@@ -385,6 +394,8 @@ def _main(argv: Sequence[str] | None = None) -> int:
                                "--guide")
     guide = with_guide_mode(guide, args.guide_mode, "--guide-mode", "--guide")
     guide = with_guide_denoiser(guide, args.guide_denoiser, "--guide-denoiser", "--guide")
+    guide = with_guide_albedo_channels(guide, args.guide_nlm_albedo_channels, "--guide-nlm-albedo-channels",
+                                       "--guide")
     guide = with_guide_numbers(guide, {key: getattr(args, flag[2:].replace("-", "_"))
                                        for flag, _, key, _ in GUIDE_NUMBERS}, lambda flag: flag, "--guide")
     if args.weights_layers and guide.enabled and guide.mode in ENVELOPE_MODES:
@@ -453,7 +464,8 @@ def _guide_header(guide: GuideConfig) -> str:
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""
     nlm = f"nlm k={guide.nlm_k:g} r={guide.nlm_radius:g}" + (
-        f" albedo={guide.nlm_albedo:g}(+{guide.nlm_albedo_eps:g})" if guide.nlm_albedo else "")
+        f" albedo={guide.nlm_albedo:g}(+{guide.nlm_albedo_eps:g}"
+        f"{', rgb' if guide.nlm_albedo_channels == 'rgb' else ''})" if guide.nlm_albedo else "")
     uses_y = bool(guide.y_weight or guide.cross)
     # the joint filter holds from nlm_joint_passes up to nlm_y_passes (from there ~y has its own NL-means)
     joint = bool(uses_y and guide.nlm_joint_passes and guide.denoiser != "oidn"
