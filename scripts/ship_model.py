@@ -34,7 +34,7 @@ from ppmrecon.fileio import write_text  # noqa: E402
 from ppmrecon.model.checkpoint import DEFAULT_MODEL, load_checkpoint, save_checkpoint  # noqa: E402
 from ppmrecon.model.chooser import CANDIDATES  # noqa: E402
 from ppmrecon.model.guard import GuardConfig  # noqa: E402
-from ppmrecon.model.guide import DENOISERS, ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
+from ppmrecon.model.guide import ALBEDO_CHANNELS, DENOISERS, ENVELOPE_MODES, GUIDE_MODES, GuideConfig  # noqa: E402
 from ppmrecon.model.kpn import parameter_count  # noqa: E402
 
 
@@ -161,6 +161,9 @@ def main() -> None:
     ap.add_argument("--guide-denoiser", choices=DENOISERS, default=None,
                     help="ship with this denoiser for the guide's images (GuideConfig.denoiser: oidn, nlm, "
                          "nlm_source); the choice should come from held-out figures: give them with --bench")
+    ap.add_argument("--guide-nlm-albedo-channels", choices=ALBEDO_CHANNELS, default=None,
+                    help="ship with NL-means' albedo demodulation dividing by the albedo's RGB mean or each "
+                         "channel by its own (GuideConfig.nlm_albedo_channels)")
     ap.add_argument("--bench", type=Path, action="append", default=None,
                     help="a benchmarks/bench_guide.py result (guide.json) whose summary rows go into the card "
                          "(repeatable: one table each, e.g. the training data and a hold-out set)")
@@ -303,6 +306,8 @@ def changed_guide(guide: GuideConfig, args: argparse.Namespace, source: Path,
     values = reship_values(args, "guide")
     if args.guide_denoiser is not None:
         values.append(("denoiser", args.guide_denoiser, "--guide-denoiser"))
+    if args.guide_nlm_albedo_channels is not None:
+        values.append(("nlm_albedo_channels", args.guide_nlm_albedo_channels, "--guide-nlm-albedo-channels"))
     if (mode or values) and not guide.enabled:
         sys.exit(f"ship_model: {source} was trained without the guide: no guide setting to change")
     if mode and mode != guide.mode:
@@ -315,7 +320,9 @@ def command_flags(args: argparse.Namespace) -> str:
     numbers = "".join(f" {flag} {getattr(args, _dest(flag)):g}" for flag, *_ in RESHIP_NUMBERS
                       if getattr(args, _dest(flag)) is not None)
     return ((f" --guide-mode {args.guide_mode}" if args.guide_mode else "")
-            + (f" --guide-denoiser {args.guide_denoiser}" if args.guide_denoiser else "") + numbers
+            + (f" --guide-denoiser {args.guide_denoiser}" if args.guide_denoiser else "")
+            + (f" --guide-nlm-albedo-channels {args.guide_nlm_albedo_channels}"
+               if args.guide_nlm_albedo_channels else "") + numbers
             + (f" --chooser {args.chooser}" if args.chooser is not None else "")
             + "".join(f" --bench {path}" for path in args.bench or ()))
 
@@ -441,7 +448,7 @@ def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
     if args.guide_mode is None and args.chooser is None and args.guide_denoiser is None \
-            and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
+            and args.guide_nlm_albedo_channels is None and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
         sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-denoiser, "
                  + ", ".join(flag for flag, *_ in RESHIP_NUMBERS) + ", --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)

@@ -499,6 +499,7 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
         return torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
 
     domains = [(padded(u), padded(v))]                  # (padded u, padded V): plain, then u / a
+    pad_a = None                                        # per channel: the pair weight's albedo
     if albedo is not None:
         if albedo.dim() == 3:       # per channel: u_c / a_c, each difference weighted by a_pc a_qc (below)
             a = albedo[None].float().repeat(1, groups, 1, 1)
@@ -508,7 +509,6 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
             a = albedo.reshape(1, 1, height, width).float()
             domains.append((padded(u / a), padded(v / a.square())))
         num_a, chose_a = torch.zeros_like(u), torch.empty_like(v[:, :1], dtype=torch.bool)
-    pad_a = None
     num, den = torch.zeros_like(u), torch.zeros_like(v[:, :1])
     region = (height + r) * (width + 2 * r)             # the largest pair region (below)
     store = {name: torch.empty(c * region) for name, c in (("diff", 3 * groups), ("sum", groups),
