@@ -121,9 +121,11 @@ def worker(spec: dict) -> dict:
                 from ppmrecon.model.guide import DENOISERS
                 how = spec["method"].split(":", 1)[1]
                 if "=" in how:                          # shipped:KEY=VALUE[+KEY=VALUE]: guide settings
+                    from bench_guide import _setting   # text read as the setting's type
+
                     pairs = dict(p.split("=", 1) for p in how.split("+"))
-                    model.guide = replace(model.guide, **{k: v if isinstance(getattr(model.guide, k), str)
-                                                          else float(v) for k, v in pairs.items()})
+                    model.guide = replace(model.guide, **{k: _setting(getattr(model.guide, k), v)
+                                                          for k, v in pairs.items()})
                 else:
                     model.guide = (replace(model.guide, denoiser=how) if how in DENOISERS
                                    else model.guide.in_mode(how))

@@ -32,6 +32,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 from bench_guide import FEW_PIXELS, reference_error, score_image  # noqa: E402
+from study import references, renderer  # noqa: E402
 
 from ppmrecon import buffers as B  # noqa: E402
 from ppmrecon.fileio import write_json, write_text  # noqa: E402
@@ -60,27 +61,12 @@ PHOTONS, SEED, REF_PHOTONS = 16384, 11, 65536
 REF_SEEDS = (900001, 900002)
 
 
-def render(loaded, settings: dict, passes: int, seed: int, layout: str = "multi"):
-    from ppmrecon.render.integrator import Renderer, RenderSettings
-
-    max_depth, rr_depth = loaded.depths()
-    fields = {"photons": PHOTONS, "max_depth": max_depth, "rr_depth": rr_depth, **settings}
-    return Renderer(loaded.scene, RenderSettings(passes=passes, seed=seed, layout=layout, **fields),
-                    scene_name=loaded.name).run()
-
-
-def reference(loaded, key: str, max_depth: int | None, passes: int, cache: Path) -> tuple[np.ndarray, dict]:
-    """Mean of two independent single-bandwidth SPPM halves, and its own error."""
-    halves = []
-    for half, seed in zip("ab", REF_SEEDS):
-        path = cache / f"{key}_ref{half}_d{max_depth}_{passes}x{REF_PHOTONS}.exr"
-        if not path.exists():
-            t = time.perf_counter()
-            extra = {} if max_depth is None else {"max_depth": max_depth}
-            res = render(loaded, {"photons": REF_PHOTONS, **extra}, passes, seed, layout="single")
-            B.write_rgb(path, res.estimates[0])
-            print(f"{key}: reference {half} ({passes} passes) in {time.perf_counter() - t:.0f}s", flush=True)
-        halves.append(B.read_rgb(path)[0])
+def reference(name: str, width: int, max_depth: int | None, passes: int, cache: Path) -> tuple[np.ndarray, dict]:
+    """Mean of two independent single-bandwidth SPPM halves (``study.references``) at the
+    scene's own path depth or ``max_depth``, and its own error."""
+    key = f"{name}_d{max_depth}" if max_depth is not None else name
+    depth = {} if max_depth is None else {"max_depth": max_depth}
+    _, halves = references({key: name}, width, REF_PHOTONS, passes, cache, seeds=REF_SEEDS, **depth)[key]
     return 0.5 * (halves[0] + halves[1]), reference_error(*halves)
 
 
@@ -109,16 +95,22 @@ def main() -> None:
     fns = {"shipped": lambda buf: denoise(buf, net).rgb}
     rows = []
     for name in args.scenes.split(","):
+        refs: dict = {}                                  # path depth -> (reference, its error)
         loaded = load_scene(name, resolution=args.width, warn=False)
         key = f"{name}_{args.width}"
         for option in options:
-            settings = OPTIONS[option]
-            ref, ref_err = reference(loaded, key, settings.get("max_depth"), args.ref_passes, cache)
+            settings = dict(OPTIONS[option])
+            depth = settings.get("max_depth")
+            if depth not in refs:
+                refs[depth] = reference(name, args.width, depth, args.ref_passes, cache)
+            ref, ref_err = refs[depth]
+            method, photons = settings.pop("method", "sppm"), settings.pop("photons", PHOTONS)
             for passes in (int(p) for p in args.passes.split(",")):
                 path = cache / f"{key}_{option}_n{passes}.exr"
                 if not path.exists():
                     t = time.perf_counter()
-                    B.write_buffers(path, render(loaded, settings, passes, SEED).buffer_file())
+                    res = renderer(loaded, name, "multi", method, photons, SEED, passes=passes, **settings).run()
+                    B.write_buffers(path, res.buffer_file())
                     print(f"{key} {option} N = {passes} in {time.perf_counter() - t:.1f}s", flush=True)
                 row = score_image(B.read_buffers(path), ref, fns, ref_err)
                 row.update(scene=name, option=option, passes=passes)

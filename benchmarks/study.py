@@ -66,16 +66,17 @@ def names_of(report: dict) -> list[str]:
 SINGLE_KNNS = (10, 20)
 
 
-def renderer(loaded, name, layout, method, photons, seed, passes=None, budget=None, single_knn=None):
+def renderer(loaded, name, layout, method, photons, seed, passes=None, budget=None, single_knn=None, **settings):
     """A renderer for a loaded scene with its own path depth (issue 20); the single layout
-    starts at the ``single_knn`` k-NN radius (default RenderSettings.single_knn = 10)."""
+    starts at the ``single_knn`` k-NN radius (default RenderSettings.single_knn = 10).
+    ``settings``: other RenderSettings fields, overriding these (e.g. ``max_depth``, ``kernel``)."""
     from ppmrecon.render.integrator import Renderer, RenderSettings
 
     max_depth, rr_depth = loaded.depths()
-    extra = {} if single_knn is None else {"single_knn": single_knn}
+    fields = {"max_depth": max_depth, "rr_depth": rr_depth, **({} if single_knn is None else {"single_knn": single_knn})}
+    fields.update(settings)
     return Renderer(loaded.scene, RenderSettings(method=method, passes=passes, time_budget=budget, photons=photons,
-                                                 seed=seed, layout=layout, max_depth=max_depth, rr_depth=rr_depth,
-                                                 **extra),
+                                                 seed=seed, layout=layout, **fields),
                     scene_name=name)
 
 
@@ -157,19 +158,22 @@ def agreement(refs: list[np.ndarray]) -> dict:
                                                       + relmse_trimmed(refs[1], refs[0], TRIM))}
 
 
-def references(scenes: dict, width: int, photons: int, passes: int, cache: Path) -> dict:
-    """Two independent single-bandwidth SPPM references per scene (cached as EXR)."""
+def references(scenes: dict, width: int, photons: int, passes: int, cache: Path, seeds: tuple = REF_SEEDS,
+               **settings) -> dict:
+    """Two independent single-bandwidth SPPM references per scene (cached as EXR), rendered
+    with random streams ``seeds`` and the RenderSettings fields ``settings`` (e.g. a path
+    depth other than the scene's; the cache key should then say so)."""
     from ppmrecon.render.scene import load_scene
 
     out = {}
     for key, spec in scenes.items():
         loaded = load_scene(spec, resolution=width)
         refs = []
-        for seed in REF_SEEDS:
+        for seed in seeds:
             path = ref_path(cache, key, width, passes, photons, seed)
             if not path.exists():
                 t = time.perf_counter()
-                res = renderer(loaded, key, "single", "sppm", photons, seed, passes=passes).run()
+                res = renderer(loaded, key, "single", "sppm", photons, seed, passes=passes, **settings).run()
                 B.write_rgb(path, res.estimates[0], header=res.header)
                 print(f"{key}: reference seed {seed} in {time.perf_counter() - t:.0f}s", flush=True)
             refs.append(B.read_rgb(path)[0])

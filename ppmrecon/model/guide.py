@@ -503,7 +503,7 @@ def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, rad
     if albedo is not None:
         if albedo.dim() == 3:       # per channel: u_c / a_c, each difference weighted by a_pc a_qc (below)
             a = albedo[None].float().repeat(1, groups, 1, 1)
-            domains.append((padded(u / a), padded(v)))
+            domains.append((padded(u / a), domains[0][1]))
             pad_a = padded(a)
         else:
             a = albedo.reshape(1, 1, height, width).float()
