@@ -149,6 +149,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_nlm_joint_k: float | None = None, guide_anchor_free_dark: float | None = None,
             guide_nlm_albedo: float | None = None, guide_nlm_albedo_eps: float | None = None,
             guide_nlm_albedo_channels: str | None = None,
+            guide_range_sigma: float | None = None, guide_range_sigma_rel: float | None = None,
+            guide_range_sigma_width: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -177,6 +179,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     as ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` /
     ``--guide-nlm-joint-passes`` / ``--guide-nlm-joint-k`` / ``--guide-nlm-albedo`` / ``--guide-nlm-albedo-eps``,
     and ``guide_nlm_albedo_channels`` (``mean`` or ``rgb``) as ``--guide-nlm-albedo-channels``;
+    ``guide_range_sigma`` / ``guide_range_sigma_rel`` / ``guide_range_sigma_width`` as
+    ``--guide-range-sigma`` / ``--guide-range-sigma-rel`` / ``--guide-range-sigma-width``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -259,7 +263,10 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "nlm_y_k": guide_nlm_y_k, "nlm_joint_passes": guide_nlm_joint_passes,
                                          "nlm_joint_k": guide_nlm_joint_k, "nlm_albedo": guide_nlm_albedo,
                                          "nlm_albedo_eps": guide_nlm_albedo_eps,
-                                         "anchor_free_dark": guide_anchor_free_dark},
+                                         "anchor_free_dark": guide_anchor_free_dark,
+                                         "range_sigma": guide_range_sigma,
+                                         "range_sigma_rel": guide_range_sigma_rel,
+                                         "range_sigma_width": guide_range_sigma_width},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

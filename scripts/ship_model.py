@@ -106,6 +106,14 @@ RESHIP_NUMBERS = (
                                 "0 = off)", "guide", "nlm_albedo"),
     ("--guide-nlm-albedo-eps", "E", "ship with E added to the albedo before the demodulation divides by it "
                                     "(GuideConfig.nlm_albedo_eps)", "guide", "nlm_albedo_eps"),
+    ("--guide-range-sigma", "K", "ship with each pixel's envelope range widened to every estimate +- K times its "
+                                 "standard deviation of the mean (GuideConfig.range_sigma; 0 = off)",
+     "guide", "range_sigma"),
+    ("--guide-range-sigma-rel", "R", "ship with only estimates of standard deviation <= R x their level widened "
+                                     "(GuideConfig.range_sigma_rel; 0 = every estimate)", "guide", "range_sigma_rel"),
+    ("--guide-range-sigma-width", "W", "ship with only pixels whose bare range is <= W x the widest estimate's "
+                                       "standard deviation widened (GuideConfig.range_sigma_width; 0 = every "
+                                       "pixel)", "guide", "range_sigma_width"),
     ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
                                       "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
                                       "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
@@ -384,6 +392,11 @@ def shipped_row(guide: GuideConfig) -> list[str]:
             + (f", widened towards the range of Eq. 6's terms over its 3 x 3 window by the share 1 / (1 + N / "
                f"{guide.terms_passes:g}) for N passes (each end by at most the range's width)"
                if guide.terms_passes else "")
+            + (f", and to hold each estimate +- {guide.range_sigma:g} x its standard deviation of the mean"
+               + (f" (of the estimates whose standard deviation is at most {guide.range_sigma_rel:g} x their level)"
+                  if guide.range_sigma_rel else "")
+               + (f", where the bare range is at most {guide.range_sigma_width:g} x the widest estimate's standard "
+                  "deviation" if guide.range_sigma_width else "") if guide.range_sigma else "")
             + ", anchored at low frequencies to "
             + (f"~z^{guide.anchor_source + 1} where its low-pass agrees with ~z^{guide.anchor_source}'s within "
                f"{guide.anchor_select:g} x the latter's noise, else to ~z^{guide.anchor_source} (per pixel),"

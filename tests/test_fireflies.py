@@ -151,7 +151,7 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     from ppmrecon.model.guide import terms_range, terms_share
     from ppmrecon.model.infer import buffer_aim
 
-    narrow = denoise(buf, shipped, guard=DEFAULT_ON, guide=replace(shipped.guide, terms_passes=0.0),
+    narrow = denoise(buf, shipped, guard=DEFAULT_ON, guide=replace(shipped.guide, terms_passes=0.0, range_sigma=0.0),
                      precision="float32").rgb
     assert np.all(narrow >= buf.estimates.min(0)) and np.all(narrow <= buf.estimates.max(0))
     on = denoise(buf, shipped, guard=DEFAULT_ON, precision="float32").rgb
@@ -162,6 +162,11 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     y, z = est[:, 0], aim.z
     lo, hi = torch.minimum(y, z.amin(1)), torch.maximum(y, z.amax(1))
     assert bool((lo >= est.amin(1)).all() and (hi <= est.amax(1)).all())     # pulled within the range
+    # the shipped range also holds each estimate's own noise interval (guide.noise_range)
+    assert shipped.guide.range_sigma > 0
+    from ppmrecon.model.guide import noise_range
+    lo, hi = noise_range(y, z, torch.from_numpy(buf.variances)[None], lo, hi, shipped.guide.range_sigma,
+                         shipped.guide.range_sigma_rel, None, shipped.guide.range_sigma_width)
     wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes_of(buf), shipped.guide))
     out = torch.from_numpy(on).permute(2, 0, 1)[None]
     assert bool((out >= wide_lo - 1e-6).all() and (out <= wide_hi + 1e-6).all())

@@ -646,6 +646,77 @@ def test_envelope_with_the_terms_range_is_consistent_and_needs_the_pass_count():
     assert bool((out <= torch.maximum(hi, e)).all() and (out >= torch.minimum(lo, e)).all())
 
 
+def test_noise_range_holds_each_estimates_noise_interval_and_gates_sparkles():
+    """noise_range: each end moves out to the estimates' X_k -+ kappa sqrt(V_k) (brute force),
+    never inwards, the low end never below 0; an estimate whose sqrt(V) exceeds rel x its
+    level is not widened; a lone ~y spike takes no part; zero variances or kappa 0 leave the
+    range as it was (the consistency argument: the widening vanishes with the noise)."""
+    from ppmrecon.model.guide import noise_range
+
+    torch.manual_seed(27)
+    y, z = torch.rand(1, 3, 6, 7) + 0.5, torch.rand(1, 4, 3, 6, 7) + 0.5
+    v = torch.rand(1, 5, 6, 7) * 0.04
+    lo, hi = torch.minimum(y, z.amin(1)), torch.maximum(y, z.amax(1))
+    x = torch.cat([y[:, None], z], 1)
+    sd = v.sqrt()[:, :, None]
+    a, b = noise_range(y, z, v, lo, hi, 1.5)
+    torch.testing.assert_close(a, torch.minimum(lo, (x - 1.5 * sd).amin(1)).clamp(min=0.0))
+    torch.testing.assert_close(b, torch.maximum(hi, (x + 1.5 * sd).amax(1)))
+    assert bool((a <= lo).all() and (b >= hi).all() and (a >= 0).all() and (b > hi).any())
+    for zero in (noise_range(y, z, torch.zeros_like(v), lo, hi, 1.5), noise_range(y, z, v, lo, hi, 0.0)):
+        assert torch.equal(zero[0], lo) and torch.equal(zero[1], hi)
+    # the sparkle gate: ~z^2 at pixel (2, 3) has sd 0.5 x its level, above rel = 0.3
+    z2 = z.clone()
+    z2[:, 1, :, 2, 3] = 10.0
+    v2 = torch.zeros_like(v)
+    v2[:, 2, 2, 3] = 25.0
+    lo2, hi2 = torch.minimum(y, z2.amin(1)), torch.maximum(y, z2.amax(1))
+    gated = noise_range(y, z2, v2, lo2, hi2, 1.0, rel=0.3)
+    assert torch.equal(gated[1], hi2) and torch.equal(gated[0], lo2)
+    assert bool(noise_range(y, z2, v2, lo2, hi2, 1.0, rel=0.6)[1][..., 2, 3].ge(15.0 - 1e-5).all())
+    # a lone ~y spike (left out of the range) does not widen it by its own noise
+    y3 = y.clone()
+    y3[..., 4, 4] = 100.0
+    v3 = torch.zeros_like(v)
+    v3[:, 0, 4, 4] = 1.0
+    out = torch.zeros(1, 1, 6, 7, dtype=torch.bool)
+    out[..., 4, 4] = True
+    zlo, zhi = z.amin(1), z.amax(1)
+    wide = noise_range(y3, z, v3, zlo, zhi, 2.0, y_out=out)
+    assert torch.equal(wide[1][..., 4, 4], zhi[..., 4, 4]) and torch.equal(wide[0][..., 4, 4], zlo[..., 4, 4])
+    assert bool((noise_range(y3, z, v3, zlo, zhi, 2.0)[1][..., 4, 4] >= 102.0).all())
+    # the width test: only pixels whose bare range is within W x ~z^4's sd are widened
+    w_only = noise_range(y, z, v, lo, hi, 1.5, width=2.0)
+    narrow = (hi - lo).mean(1, keepdim=True) <= 2.0 * v[:, 4:].sqrt()
+    assert bool(narrow.any() and (~narrow).any())
+    torch.testing.assert_close(w_only[0], torch.where(narrow, a, lo))
+    torch.testing.assert_close(w_only[1], torch.where(narrow, b, hi))
+
+
+def test_envelope_with_the_noise_range_lets_the_guide_leave_a_narrow_range():
+    """With range_sigma the envelope needs the variances, returns converged inputs exactly,
+    and keeps a guide that lies within the estimates' noise of a range narrower than it."""
+    from ppmrecon.model.guide import envelope
+
+    on = replace(ENVELOPE, range_sigma=1.0, range_sigma_rel=0.3)
+    y = torch.full((1, 3, 8, 8), 1.0)
+    z = torch.full((1, 4, 3, 8, 8), 1.02)                 # five estimates that err together
+    guide = torch.full((1, 4, 8, 8), 0.95)                # the guide averaged that error away
+    v = torch.full((1, 5, 8, 8), 0.1 ** 2)
+    with pytest.raises(ValueError, match="variances"):
+        envelope(guide, y, z, v[:, 4:], DEFAULT_ON, on)
+    still = replace(DEFAULT_ON, anchor=0.0)                # the clamp alone
+    bare = envelope(guide, y, z, v[:, 4:], still, replace(on, range_sigma=0.0))
+    wide = envelope(guide, y, z, v[:, 4:], still, on, variances=v)
+    torch.testing.assert_close(bare, torch.ones_like(bare))
+    torch.testing.assert_close(wide, torch.full_like(wide, 0.95))
+    buf = make_buffer(24, 24, seed=13)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    same = np.repeat(buf.estimates[4:5], 5, axis=0)
+    np.testing.assert_array_equal(denoise(replace(buf, estimates=same, variances=np.zeros_like(buf.variances)),
+                                          model).rgb, same[0])
+
+
 def test_aim_spikes_are_lone_bright_pixels_and_spike_estimate_weighs_by_variance():
     """aim_spikes: a light of one or two pixels far above its other neighbours is one; a
     bright patch (its corners too), a thin bright line (but its two ends) or a pixel less
@@ -1100,6 +1171,23 @@ def test_nlm_albedo_setting_reaches_the_guide_flags_and_api(tmp_path, capsys):
     assert exc.value.code == 2 and "--guide-nlm-albedo-channels" in capsys.readouterr().err
     with pytest.raises(ValueError, match="nlm_albedo_channels"):
         replace(on, nlm_albedo_channels="hsv")
+
+
+def test_range_sigma_setting_reaches_the_envelope_flags_and_api(tmp_path, capsys):
+    """GuideConfig.range_sigma K > 0 changes the envelope of a noisy buffer, 0 leaves it exactly
+    as it was whatever range_sigma_rel says; ``--guide-range-sigma`` / ``--guide-range-sigma-rel``
+    agree with the API and the header names them; negative or not a number: one clear line,
+    exit 2."""
+    buf = make_buffer(24, 24, seed=57)
+    buf = replace(buf, variances=np.full_like(buf.variances, 0.05), header=dict(buf.header, **{B.H_PASSES: 64}))
+    on = replace(ENVELOPE, denoiser="nlm_source", y_weight=2.0)
+    model = build("tiny", FeatureConfig(scale_free=True, outliers=True), DEFAULT_ON, on)
+    plain = denoise(buf, model).rgb
+    np.testing.assert_array_equal(denoise(buf, model, guide=replace(on, range_sigma_rel=0.3)).rgb, plain)
+    wide = denoise(buf, model, guide=replace(on, range_sigma=1.0)).rgb
+    assert not np.array_equal(wide, plain)
+    _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-range-sigma": "1", "--guide-range-sigma-rel": "0.3",
+                                                    "--guide-range-sigma-width": "3"}, "range=1sd(<=0.3)(width<=3sd)")
 
 
 def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):

@@ -146,6 +146,17 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
     ("--guide-nlm-albedo-eps", "E", "nlm_albedo_eps",
      "with --guide-nlm-albedo: what is added to the albedo before dividing by it, E > 0 (default: the "
      "checkpoint's, 0.05)"),
+    ("--guide-range-sigma", "K", "range_sigma",
+     "envelope modes: widen each pixel's range to hold every estimate +- K times its own standard deviation of "
+     "the mean (at many passes the five estimates err together and their bare range hands their noise back to "
+     "the guide); 0 = off (default: the checkpoint's)"),
+    ("--guide-range-sigma-rel", "R", "range_sigma_rel",
+     "with --guide-range-sigma: widen only estimates whose standard deviation is at most R x their level (a "
+     "rare path's sparkle keeps its bare range); 0 = every estimate (default: the checkpoint's)"),
+    ("--guide-range-sigma-width", "W", "range_sigma_width",
+     "with --guide-range-sigma: widen only pixels whose bare range is at most W x the widest estimate's standard "
+     "deviation (a wider range holds a feature's bandwidth bias, a caustic's); 0 = every pixel (default: the "
+     "checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -460,6 +471,9 @@ def _guide_header(guide: GuideConfig) -> str:
     settled = f" settled={guide.anchor_settled:g}" if guide.anchor_settled and guide.mode in ENVELOPE_MODES else ""
     select = f" select={guide.anchor_select:g}" if guide.anchor_select and guide.mode in ENVELOPE_MODES else ""
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
+    terms += (f" range={guide.range_sigma:g}sd" + (f"(<={guide.range_sigma_rel:g})" if guide.range_sigma_rel else "")
+              + (f"(width<={guide.range_sigma_width:g}sd)" if guide.range_sigma_width else "")
+              if guide.range_sigma and guide.mode in ENVELOPE_MODES else "")
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""
     found += f" empty={guide.y_empty:g}" if guide.y_empty and guide.y_weight else ""

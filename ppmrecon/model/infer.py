@@ -310,7 +310,7 @@ def buffer_envelope(buf: BufferFile, planes: torch.Tensor, guard: GuardConfig, g
     passes = passes_of(buf) if guide.terms_passes else None
     spike_variances = (variance_of(0), variance_of(len(buf.variances) - 1)) if guide.anchor_spikes else None
     variances = (torch.from_numpy(np.ascontiguousarray(buf.variances, np.float32))[None].to(device)
-                 if guide.z_spike or guide.anchor_free else None)
+                 if guide.z_spike or guide.anchor_free or guide.range_sigma else None)
     with torch.no_grad():
         image = envelope(planes.to(device), est[None, 0], est[None, 1:], variance_of(m), guard, guide, scale or 0.0,
                          wider, passes, spike_variances, variances, aim)
