@@ -1161,6 +1161,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     value unclamped: 0.63 -> 0.69 of its best input from one such pixel) and a light beside
     the pixel does not widen it (``0164_bright_emitters`` N = 4 with the Gaussian mean of
     the ends: 0.20 -> 51).
+    With ``cfg.range_sigma`` the range also holds each estimate's own noise interval
+    (:func:`noise_range`, ``variances`` needed): at many passes the five estimates err together.
     With ``aim`` (:func:`cascade_aim`, ``cfg.cascade``) the anchor aims at its t, every
     range is that of ~y and its pulled ~z^j, and the speckle field is the aim's (that of
     the buffer's own estimates).
