@@ -461,9 +461,10 @@ def reship(args: argparse.Namespace) -> None:
     """The current default with the guide settings of the command line: same weights, its
     card's training part kept, the shipped row, the command and the held-out table new."""
     if args.guide_mode is None and args.chooser is None and args.guide_denoiser is None \
-            and args.guide_nlm_albedo_channels is None and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
+            and args.guide_nlm_albedo_channels is None \
+            and all(getattr(args, _dest(flag)) is None for flag, *_ in RESHIP_NUMBERS):
         sys.exit("ship_model: give a run folder, or a guide setting to change (--guide-mode, --guide-denoiser, "
-                 + ", ".join(flag for flag, *_ in RESHIP_NUMBERS) + ", --chooser)")
+                 "--guide-nlm-albedo-channels, " + ", ".join(flag for flag, *_ in RESHIP_NUMBERS) + ", --chooser)")
     ckpt = load_checkpoint(DEFAULT_MODEL)
     before, guard_before = ckpt.model.guide, ckpt.model.guard
     meta = dict(ckpt.meta)

@@ -164,9 +164,11 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     assert bool((lo >= est.amin(1)).all() and (hi <= est.amax(1)).all())     # pulled within the range
     # the shipped range also holds each estimate's own noise interval (guide.noise_range)
     assert shipped.guide.range_sigma > 0
-    from ppmrecon.model.guide import noise_range
+    from ppmrecon.model.guard import image_scale
+    from ppmrecon.model.guide import noise_range, y_spike_mask
+    spikes = y_spike_mask(y, z, shipped.guide, DEFAULT_ON, float(image_scale(est)))
     lo, hi = noise_range(y, z, torch.from_numpy(buf.variances)[None], lo, hi, shipped.guide.range_sigma,
-                         shipped.guide.range_sigma_rel, None, shipped.guide.range_sigma_width)
+                         shipped.guide.range_sigma_rel, spikes, shipped.guide.range_sigma_width)
     wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes_of(buf), shipped.guide))
     out = torch.from_numpy(on).permute(2, 0, 1)[None]
     assert bool((out >= wide_lo - 1e-6).all() and (out <= wide_hi + 1e-6).all())

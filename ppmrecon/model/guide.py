@@ -1257,8 +1257,10 @@ def noise_range(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, lo: t
     x = torch.cat([y[:, None], z], 1)                                  # (B, 5, 3, H, W)
     s = variances.clamp(min=0.0).sqrt()[:, :, None]                    # (B, 5, 1, H, W)
     if rel > 0:
-        s = torch.where(s <= rel * x.mean(2, keepdim=True).abs(), s, torch.zeros_like(s))
-    low, high = x - kappa * s, x + kappa * s
+        s = s * (s <= rel * x.mean(2, keepdim=True).abs())
+    s = s.mul_(kappa)
+    low = x - s
+    high = x.add_(s)                                # x is a copy (the cat): no third 5-estimate tensor
     if y_out is not None:                       # a lone ~y spike: ~z^j's own ends stand in for it
         low[:, 0] = torch.where(y_out, low[:, 1:].amin(1), low[:, 0])
         high[:, 0] = torch.where(y_out, high[:, 1:].amax(1), high[:, 0])
