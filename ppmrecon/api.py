@@ -150,7 +150,7 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
             guide_nlm_albedo: float | None = None, guide_nlm_albedo_eps: float | None = None,
             guide_nlm_albedo_channels: str | None = None,
             guide_range_sigma: float | None = None, guide_range_sigma_rel: float | None = None,
-            guide_range_sigma_width: float | None = None,
+            guide_range_sigma_width: float | None = None, guide_range_sigma_isolated: float | None = None,
             guide_mode: str | None = None, guide_y_weight: float | None = None,
             guide_y_spike: float | None = None, guide_anchor_settled: float | None = None,
             guide_anchor_select: float | None = None, guide_terms_passes: float | None = None,
@@ -179,8 +179,9 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
     as ``--guide-nlm-k`` / ``--guide-nlm-radius`` / ``--guide-nlm-y-passes`` / ``--guide-nlm-y-k`` /
     ``--guide-nlm-joint-passes`` / ``--guide-nlm-joint-k`` / ``--guide-nlm-albedo`` / ``--guide-nlm-albedo-eps``,
     and ``guide_nlm_albedo_channels`` (``mean`` or ``rgb``) as ``--guide-nlm-albedo-channels``;
-    ``guide_range_sigma`` / ``guide_range_sigma_rel`` / ``guide_range_sigma_width`` as
-    ``--guide-range-sigma`` / ``--guide-range-sigma-rel`` / ``--guide-range-sigma-width``;
+    ``guide_range_sigma`` / ``guide_range_sigma_rel`` / ``guide_range_sigma_width`` /
+    ``guide_range_sigma_isolated`` as ``--guide-range-sigma`` / ``--guide-range-sigma-rel`` /
+    ``--guide-range-sigma-width`` / ``--guide-range-sigma-isolated``;
     ``guide_mode``: ``envelope`` (OIDN's image held inside
     the range of each pixel's five estimates), ``chooser`` (a learned per-pixel mix of the
     envelope and other images held in that range; a checkpoint with a chooser, as the
@@ -266,7 +267,8 @@ def denoise(buffers: BufferFile | str | os.PathLike, model: str | os.PathLike | 
                                          "anchor_free_dark": guide_anchor_free_dark,
                                          "range_sigma": guide_range_sigma,
                                          "range_sigma_rel": guide_range_sigma_rel,
-                                         "range_sigma_width": guide_range_sigma_width},
+                                         "range_sigma_width": guide_range_sigma_width,
+                                         "range_sigma_isolated": guide_range_sigma_isolated},
                                 lambda flag: "denoise: " + flag[2:].replace("-", "_"), "guide=")
     return run(buf, net, tile=tile, device=torch_device(device), precision=precision,
                guard=guard_choice(guard, net.guard), guide=chosen).rgb

@@ -114,6 +114,9 @@ RESHIP_NUMBERS = (
     ("--guide-range-sigma-width", "W", "ship with only pixels whose bare range is <= W x the widest estimate's "
                                        "standard deviation widened (GuideConfig.range_sigma_width; 0 = every "
                                        "pixel)", "guide", "range_sigma_width"),
+    ("--guide-range-sigma-isolated", "F", "ship with no widening where the widest estimate is above F x its own "
+                                          "3 x 3 median (GuideConfig.range_sigma_isolated; 0 = no test)",
+     "guide", "range_sigma_isolated"),
     ("--guide-anchor-free-dark", "D", "ship with a pixel whose ~z^4 reads at most D x the guard's floor x the "
                                       "image's scale counted dark, not a speckle (GuideConfig.anchor_free_dark; "
                                       "0 = only an empty ~z^4)", "guide", "anchor_free_dark"),
@@ -396,7 +399,9 @@ def shipped_row(guide: GuideConfig) -> list[str]:
                + (f" (of the estimates whose standard deviation is at most {guide.range_sigma_rel:g} x their level)"
                   if guide.range_sigma_rel else "")
                + (f", where the bare range is at most {guide.range_sigma_width:g} x the widest estimate's standard "
-                  "deviation" if guide.range_sigma_width else "") if guide.range_sigma else "")
+                  "deviation" if guide.range_sigma_width else "")
+               + (f", not where the widest estimate is above {guide.range_sigma_isolated:g} x its own 3 x 3 median "
+                  "(an isolated sparkle)" if guide.range_sigma_isolated else "") if guide.range_sigma else "")
             + ", anchored at low frequencies to "
             + (f"~z^{guide.anchor_source + 1} where its low-pass agrees with ~z^{guide.anchor_source}'s within "
                f"{guide.anchor_select:g} x the latter's noise, else to ~z^{guide.anchor_source} (per pixel),"

@@ -691,6 +691,20 @@ def test_noise_range_holds_each_estimates_noise_interval_and_gates_sparkles():
     assert bool(narrow.any() and (~narrow).any())
     torch.testing.assert_close(w_only[0], torch.where(narrow, a, lo))
     torch.testing.assert_close(w_only[1], torch.where(narrow, b, hi))
+    # the isolation test: a pixel whose ~z^4 is above F x its 3 x 3 median keeps its bare range,
+    # every other pixel is widened as without the test (a flat image: no pixel is isolated)
+    z5 = z.clone()
+    z5[:, 3, :, 1, 5] = 20.0                      # ~z^4 alone: 20 against neighbours of 0.5..1.5
+    lo5, hi5 = torch.minimum(y, z5.amin(1)), torch.maximum(y, z5.amax(1))
+    free = noise_range(y, z5, v, lo5, hi5, 1.5)
+    held = noise_range(y, z5, v, lo5, hi5, 1.5, isolated=3.0)
+    alone = torch.zeros(1, 1, 6, 7, dtype=torch.bool)
+    alone[..., 1, 5] = True
+    assert bool((free[1][..., 1, 5] > hi5[..., 1, 5]).all())
+    torch.testing.assert_close(held[0], torch.where(alone, lo5, free[0]))
+    torch.testing.assert_close(held[1], torch.where(alone, hi5, free[1]))
+    for same in zip(noise_range(y, z, v, lo, hi, 1.5, isolated=3.0), (a, b)):
+        assert torch.equal(*same)
 
 
 def test_envelope_with_the_noise_range_lets_the_guide_leave_a_narrow_range():
@@ -1188,6 +1202,8 @@ def test_range_sigma_setting_reaches_the_envelope_flags_and_api(tmp_path, capsys
     assert not np.array_equal(wide, plain)
     _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-range-sigma": "1", "--guide-range-sigma-rel": "0.3",
                                                     "--guide-range-sigma-width": "3"}, "range=1sd(<=0.3)(width<=3sd)")
+    _nlm_source_flags_agree(tmp_path, capsys, buf, {"--guide-range-sigma": "1", "--guide-range-sigma-isolated": "3"},
+                            "range=1sd(isolated>3x)")
 
 
 def test_nlm_joint_passes_denoises_source_and_y_together(tmp_path, capsys):

@@ -157,6 +157,9 @@ GUIDE_NUMBERS: tuple[tuple[str, str, str, str], ...] = (
      "with --guide-range-sigma: widen only pixels whose bare range is at most W x the widest estimate's standard "
      "deviation (a wider range holds a feature's bandwidth bias, a caustic's); 0 = every pixel (default: the "
      "checkpoint's)"),
+    ("--guide-range-sigma-isolated", "F", "range_sigma_isolated",
+     "with --guide-range-sigma: no widening where the widest estimate is above F x its own 3 x 3 median (an "
+     "isolated sparkle keeps its bare range); 0 = no test (default: the checkpoint's)"),
     ("--guide-y-empty", "S", "y_empty",
      "scale ~y's share in the guide by the share of pixels, over a Gaussian of S px, where ~y did not read 0 "
      "while ~z^4 rests on more than one photon event (a ~y that caught nothing reads black with variance 0); "
@@ -473,6 +476,7 @@ def _guide_header(guide: GuideConfig) -> str:
     terms = f" terms={guide.terms_passes:g}" if guide.terms_passes and guide.mode in ENVELOPE_MODES else ""
     terms += (f" range={guide.range_sigma:g}sd" + (f"(<={guide.range_sigma_rel:g})" if guide.range_sigma_rel else "")
               + (f"(width<={guide.range_sigma_width:g}sd)" if guide.range_sigma_width else "")
+              + (f"(isolated>{guide.range_sigma_isolated:g}x)" if guide.range_sigma_isolated else "")
               if guide.range_sigma and guide.mode in ENVELOPE_MODES else "")
     spikes = f" spikes={guide.anchor_spikes:g}" if guide.anchor_spikes and guide.mode in ENVELOPE_MODES else ""
     found = f" found={guide.y_found:g}" if guide.y_found and guide.y_weight else ""

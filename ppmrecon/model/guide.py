@@ -200,6 +200,7 @@ _NUMBERS = {
     "range_sigma": (">=0", "a factor >= 0 (0 = off)"),
     "range_sigma_rel": (">=0", "a relative standard deviation >= 0 (0 = no test)"),
     "range_sigma_width": (">=0", "a factor >= 0 (0 = no test)"),
+    "range_sigma_isolated": (">=0", "a factor >= 0 (0 = no test)"),
 }
 
 
@@ -383,6 +384,10 @@ class GuideConfig:
     #: together; a range wider than that holds a feature's bandwidth bias, a caustic's);
     #: 0 = every pixel
     range_sigma_width: float = 0.0
+    #: with ``range_sigma``: no widening where ~z^4 (its RGB mean) is more than this many times
+    #: its own 3 x 3 median, an isolated sparkle (a rare path's, which NL-means flattens if
+    #: the range lets it); a per-pixel alternative to ``range_sigma_rel``; 0 = no test
+    range_sigma_isolated: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -1191,7 +1196,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
         if variances is None:
             raise ValueError("envelope: the guide's range_sigma needs the five variances of the mean")
         lo, hi = noise_range(y, z, variances, lo, hi, cfg.range_sigma, cfg.range_sigma_rel, spikes,
-                             cfg.range_sigma_width)
+                             cfg.range_sigma_width, cfg.range_sigma_isolated)
     z_out = z_spike_mask(y, z, variances, cfg, guard, scale)
     if z_out is not None:             # a zero-width range: terms_range cannot widen it either
         lo, hi = torch.where(z_out, y, lo), torch.where(z_out, y, hi)
@@ -1231,7 +1236,7 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
 
 def noise_range(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor,
                 kappa: float, rel: float = 0.0, y_out: torch.Tensor | None = None,
-                width: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+                width: float = 0.0, isolated: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """A pixel's range ``[lo, hi]`` widened to hold each estimate's own noise interval,
     (B, 3, H, W) each:
 
@@ -1245,6 +1250,9 @@ def noise_range(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, lo: t
     err together, while a range wider than that holds a feature's bandwidth bias (a caustic, where
     NL-means' smoothing is a bias the bare range stops: the built-in ``cornell_caustics`` at N = 64,
     0.31 -> 0.35 of its best input widened everywhere, 0.31 -> 0.32 with ``width`` 3).
+    With ``isolated`` > 0 pixels where ~z^4's RGB mean exceeds ``isolated`` x its 3 x 3 median
+    keep the bare range: the sparkle test of ``rel`` made per pixel by its neighbours, so a
+    smooth glossy lobe with a noisy ~y is widened while a rare path's lone bright pixel is not.
     Why: at many passes a pixel's five estimates gather the same photons, so they err together
     and their range is narrower than their noise; the clamp then hands that noise back to a
     guide that had averaged it away (``holdout_s23`` at N = 256 against its deep references:
@@ -1268,6 +1276,12 @@ def noise_range(y: torch.Tensor, z: torch.Tensor, variances: torch.Tensor, lo: t
     if width > 0:
         narrow = (hi - lo).mean(1, keepdim=True) <= width * variances[:, -1:].clamp(min=0.0).sqrt()
         new_lo, new_hi = torch.where(narrow, new_lo, lo), torch.where(narrow, new_hi, hi)
+    if isolated > 0:
+        from .guard import median3x3, rgb_mean
+
+        level = rgb_mean(z[:, -1], 1, keepdim=True)
+        alone = level > isolated * median3x3(level)
+        new_lo, new_hi = torch.where(alone, lo, new_lo), torch.where(alone, hi, new_hi)
     return new_lo, new_hi
 
 
