@@ -646,6 +646,10 @@ def test_guard_travels_in_the_checkpoint_and_old_ones_load_with_it_off(tmp_path,
     # ... and ~y's share in the guide lowered where ~y caught nothing beside a lit ~z^4
     # (benchmarks/results/guide_s12_yempty and its hold-out set, guide_s12_yempty_holdout)
     assert shipped.guide.y_empty == 3.0 and shipped.guide.y_found == 0.0
+    # ... and the range widened by the estimates' own noise where their bare range is narrow, not at an
+    # isolated sparkle (benchmarks/results/guide_s27_range_*, guide_s28_iso_*)
+    assert (shipped.guide.range_sigma, shipped.guide.range_sigma_rel, shipped.guide.range_sigma_width,
+            shipped.guide.range_sigma_isolated) == (1.0, 0.0, 3.0, 3.0)
 
 
 def test_with_the_guard_off_the_output_is_eq6_clamped_at_zero(shipped):
