@@ -168,7 +168,8 @@ def test_guard_changes_nothing_without_fireflies_but_the_band_and_the_anchor(shi
     from ppmrecon.model.guide import noise_range, y_spike_mask
     spikes = y_spike_mask(y, z, shipped.guide, DEFAULT_ON, float(image_scale(est)))
     lo, hi = noise_range(y, z, torch.from_numpy(buf.variances)[None], lo, hi, shipped.guide.range_sigma,
-                         shipped.guide.range_sigma_rel, spikes, shipped.guide.range_sigma_width)
+                         rel=shipped.guide.range_sigma_rel, y_out=spikes, width=shipped.guide.range_sigma_width,
+                         isolated=shipped.guide.range_sigma_isolated)
     wide_lo, wide_hi = terms_range(y, z, lo, hi, terms_share(passes_of(buf), shipped.guide))
     out = torch.from_numpy(on).permute(2, 0, 1)[None]
     assert bool((out >= wide_lo - 1e-6).all() and (out <= wide_hi + 1e-6).all())

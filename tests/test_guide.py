@@ -1189,9 +1189,9 @@ def test_nlm_albedo_setting_reaches_the_guide_flags_and_api(tmp_path, capsys):
 
 def test_range_sigma_setting_reaches_the_envelope_flags_and_api(tmp_path, capsys):
     """GuideConfig.range_sigma K > 0 changes the envelope of a noisy buffer, 0 leaves it exactly
-    as it was whatever range_sigma_rel says; ``--guide-range-sigma`` / ``--guide-range-sigma-rel``
-    agree with the API and the header names them; negative or not a number: one clear line,
-    exit 2."""
+    as it was whatever range_sigma_rel says; ``--guide-range-sigma`` / ``--guide-range-sigma-rel`` /
+    ``--guide-range-sigma-width`` / ``--guide-range-sigma-isolated`` agree with the API and the
+    header names them; negative or not a number: one clear line, exit 2."""
     buf = make_buffer(24, 24, seed=57)
     buf = replace(buf, variances=np.full_like(buf.variances, 0.05), header=dict(buf.header, **{B.H_PASSES: 64}))
     on = replace(ENVELOPE, denoiser="nlm_source", y_weight=2.0)

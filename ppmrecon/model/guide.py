@@ -1195,8 +1195,8 @@ def envelope(guide: torch.Tensor, y: torch.Tensor, z: torch.Tensor, anchor_varia
     if cfg.range_sigma:
         if variances is None:
             raise ValueError("envelope: the guide's range_sigma needs the five variances of the mean")
-        lo, hi = noise_range(y, z, variances, lo, hi, cfg.range_sigma, cfg.range_sigma_rel, spikes,
-                             cfg.range_sigma_width, cfg.range_sigma_isolated)
+        lo, hi = noise_range(y, z, variances, lo, hi, cfg.range_sigma, rel=cfg.range_sigma_rel, y_out=spikes,
+                             width=cfg.range_sigma_width, isolated=cfg.range_sigma_isolated)
     z_out = z_spike_mask(y, z, variances, cfg, guard, scale)
     if z_out is not None:             # a zero-width range: terms_range cannot widen it either
         lo, hi = torch.where(z_out, y, lo), torch.where(z_out, y, hi)
