@@ -1034,11 +1034,9 @@ def test_nlm_image_of_several_images_shares_one_set_of_weights():
     assert contrast(joint) > 0.9 and contrast(own) < contrast(joint)
 
 
-def _nlm_by_offsets(colour: torch.Tensor, variance: torch.Tensor, k: float, radius: int, patch: int,
-                    values: torch.Tensor | None = None, with_variance: bool = False):
+def _nlm_by_offsets(colour: torch.Tensor, variance: torch.Tensor, k: float, radius: int, patch: int) -> torch.Tensor:
     """nlm_image's formula evaluated one offset at a time, the patch mean by avg_pool2d: the
-    reference the mirrored-offset loop must match (``values``: the image averaged in place of
-    ``colour``; ``with_variance``: also sum w^2 V / (sum w)^2)."""
+    reference the mirrored-offset loop must match."""
     import math
 
     from ppmrecon.model.guide import NLM_CUT
@@ -1048,8 +1046,7 @@ def _nlm_by_offsets(colour: torch.Tensor, variance: torch.Tensor, k: float, radi
     h, w = u.shape[-2:]
     pu = torch.nn.functional.pad(u, (radius,) * 4, mode="replicate")
     pv = torch.nn.functional.pad(v, (radius,) * 4, mode="replicate")
-    px = torch.nn.functional.pad((colour if values is None else values)[None], (radius,) * 4, mode="replicate")
-    num, den, var = torch.zeros_like(u), torch.zeros(1, 1, h, w), torch.zeros_like(v)
+    num, den = torch.zeros_like(u), torch.zeros(1, 1, h, w)
     for dy in range(2 * radius + 1):
         for dx in range(2 * radius + 1):
             uq, vq = pu[..., dy:dy + h, dx:dx + w], pv[..., dy:dy + h, dx:dx + w]
@@ -1057,11 +1054,8 @@ def _nlm_by_offsets(colour: torch.Tensor, variance: torch.Tensor, k: float, radi
             d = (d / (k * k * (v + vq) + torch.finfo(torch.float32).tiny)).mean(1, keepdim=True)
             d = torch.nn.functional.avg_pool2d(d, 2 * patch + 1, stride=1, padding=patch, count_include_pad=False)
             wt = torch.exp(-d.clamp(0.0, NLM_CUT)) - math.exp(-NLM_CUT)
-            num += wt * px[..., dy:dy + h, dx:dx + w]
+            num += wt * uq
             den += wt
-            var += wt * wt * vq
-    if with_variance:
-        return (num / den)[0], (var / den ** 2).reshape(variance.shape)
     return (num / den)[0]
 
 
@@ -1078,38 +1072,6 @@ def test_nlm_image_matches_its_formula_offset_by_offset():
         for radius, patch in ((1, 1), (2, 1), (3, 1), (3, 2)):
             torch.testing.assert_close(nlm_image(c, v, 0.7, radius, patch), _nlm_by_offsets(c, v, 0.7, radius, patch),
                                        rtol=1e-5, atol=1e-6)
-
-
-def test_nlm_pilot_pass_is_its_formula_and_lowers_the_error_of_one_pass():
-    """nlm_pass's ``values`` and ``with_variance`` are the formula's (offset by offset: the
-    weights ``colour`` measures applied to ``values``, and sum w^2 V / (sum w)^2), for one and
-    two images; nlm_image's ``pilot`` is those two passes chained; on a flat-and-stepped image
-    under white noise the two-pass filter (pilot 4) lands closer to the clean image than one pass,
-    and with a pilot factor that makes its distances strict (0.25) it averages less."""
-    from ppmrecon.model.guide import nlm_image, nlm_pass
-
-    gen = torch.Generator().manual_seed(67)
-    colour = 2.0 * torch.rand(6, 13, 17, generator=gen)
-    other = torch.rand(6, 13, 17, generator=gen)
-    variance = 0.2 * torch.rand(2, 13, 17, generator=gen)
-    for c, x, v in ((colour[:3], other[:3], variance[0]), (colour, other, variance)):
-        got, got_v = nlm_pass(c, v, 0.7, 2, 1, values=x, with_variance=True)
-        want, want_v = _nlm_by_offsets(c, v, 0.7, 2, 1, values=x, with_variance=True)
-        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-6)
-        torch.testing.assert_close(got_v, want_v, rtol=1e-5, atol=1e-7)
-        p, v_p = nlm_pass(c, v, 0.7, 2, 1, with_variance=True)
-        torch.testing.assert_close(nlm_image(c, v, 0.7, 2, 1, pilot=3.0), nlm_pass(p, 3.0 * v_p, 0.7, 2, 1, values=c),
-                                   rtol=1e-5, atol=1e-6)
-    size = 48
-    yy, xx = torch.meshgrid(torch.linspace(0, 1, size), torch.linspace(0, 1, size), indexing="ij")
-    clean = (1.0 + 2.0 * (xx > 0.5) + 0.5 * torch.sin(8 * yy)).expand(3, size, size)
-    noise_v = torch.full((size, size), 0.3)
-    noisy = clean + noise_v.sqrt() * torch.randn(3, size, size, generator=gen)
-
-    def err(pilot: float) -> float:
-        return float((nlm_image(noisy, noise_v, 0.45, 3, 1, pilot=pilot) - clean).square().mean())
-    assert err(4.0) < 0.85 * err(0.0)
-    assert err(0.25) > err(0.0)
 
 
 def test_nlm_image_with_albedo_averages_across_texture_and_keeps_what_it_does_not_explain():

@@ -201,7 +201,6 @@ _NUMBERS = {
     "range_sigma_rel": (">=0", "a relative standard deviation >= 0 (0 = no test)"),
     "range_sigma_width": (">=0", "a factor >= 0 (0 = no test)"),
     "range_sigma_isolated": (">=0", "a factor >= 0 (0 = no test)"),
-    "nlm_pilot": (">=0", "a factor >= 0 (0 = off)"),
 }
 
 
@@ -389,10 +388,6 @@ class GuideConfig:
     #: its own 3 x 3 median, an isolated sparkle (a rare path's, which NL-means flattens if
     #: the range lets it); a per-pixel alternative to ``range_sigma_rel``; 0 = no test
     range_sigma_isolated: float = 0.0
-    #: > 0: every NL-means of the guide runs twice, the second pass's patch distances measured
-    #: on the first pass's image with its variance of the mean counted this many times
-    #: (:func:`nlm_image`'s ``pilot``); 0 = one pass (checkpoints without it read as 0)
-    nlm_pilot: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.enabled, bool):
@@ -481,25 +476,7 @@ def nlm_window(cfg: GuideConfig) -> tuple[int, int]:
 
 
 def nlm_image(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
-              patch: int = 1, albedo: torch.Tensor | None = None, albedo_penalty: float = 2.0,
-              pilot: float = 0.0) -> torch.Tensor:
-    """Non-local means (:func:`nlm_pass`); with ``pilot`` > 0 in two passes: the first pass's
-    image p and its variance of the mean V_p = sum_q w_pq^2 V_q / (sum_q w_pq)^2 measure the
-    second pass's patch distances, V_p counted ``pilot`` times (the formula holds for
-    independent pixels, a photon map's noise is correlated over its kernel), and the second
-    pass averages the original ``colour`` with those weights (the two-step scheme of
-    pilot-based NL-means, e.g. Rousselle, Manzi & Zwicker 2013's prefiltered features:
-    distances between denoised patches separate signal from noise where one noisy pixel
-    cannot)."""
-    if not pilot:
-        return nlm_pass(colour, variance, k, radius, patch, albedo, albedo_penalty)
-    p, v_p = nlm_pass(colour, variance, k, radius, patch, albedo, albedo_penalty, with_variance=True)
-    return nlm_pass(p, v_p.mul_(pilot), k, radius, patch, albedo, albedo_penalty, values=colour)
-
-
-def nlm_pass(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radius: int = 3,
-             patch: int = 1, albedo: torch.Tensor | None = None, albedo_penalty: float = 2.0,
-             values: torch.Tensor | None = None, with_variance: bool = False):
+              patch: int = 1, albedo: torch.Tensor | None = None, albedo_penalty: float = 2.0) -> torch.Tensor:
     """Non-local means with the variance-normalised patch distance of Rousselle, Knaus &
     Zwicker 2012 ("Adaptive Rendering with Non-Local Means Filtering", their per-pixel distance
     with the variance-cancellation term, alpha = 1): colour (3 G, H, W), G images of R, G, B,
@@ -532,15 +509,9 @@ def nlm_pass(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radi
     ``box`` scene's caustic spots on its blue wall were smoothed over, 0.57 -> 0.64-0.71 of the
     best input). Texture then no longer stops the averaging, while a pair whose radiance is
     not the albedo's (a glossy highlight, a caustic or an emitter over a texture) stays with
-    the plain distance. Where a is flat the two distances are equal and the plain one wins.
-
-    ``values`` (as ``colour``): the image averaged with the weights ``colour`` measures (the
-    second pass of :func:`nlm_image`'s pilot); ``with_variance`` also returns the output's
-    variance of the mean, sum_q w_pq^2 V_q / (sum_q w_pq)^2 (shaped as ``variance``), for
-    independent pixels."""
+    the plain distance. Where a is flat the two distances are equal and the plain one wins."""
     groups = 1 if variance.dim() == 2 else variance.shape[0]
     u = colour[None].float().contiguous()
-    x = u if values is None else values[None].float().contiguous()
     v = variance.reshape(1, groups, *variance.shape[-2:]).float().clamp(min=0.0)
     height, width = u.shape[-2:]
     r = radius
@@ -550,7 +521,6 @@ def nlm_pass(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radi
         return torch.nn.functional.pad(x, (r, r, r, r), mode="replicate")
 
     domains = [(padded(u), padded(v))]                  # (padded u, padded V): plain, then u / a
-    averaged = [domains[0][0] if values is None else padded(x)]   # what the weights average
     pad_a = None                                        # per channel: the pair weight's albedo
     if albedo is not None:
         if albedo.dim() == 3:       # per channel: u_c / a_c, each difference weighted by a_pc a_qc (below)
@@ -560,10 +530,8 @@ def nlm_pass(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radi
         else:
             a = albedo.reshape(1, 1, height, width).float()
             domains.append((padded(u / a), padded(v / a.square())))
-        averaged.append(domains[1][0] if values is None else padded(x / a))
         num_a, chose_a = torch.zeros_like(u), torch.empty_like(v[:, :1], dtype=torch.bool)
     num, den = torch.zeros_like(u), torch.zeros_like(v[:, :1])
-    var_num, w2 = (torch.zeros_like(v), torch.empty_like(den)) if with_variance else (None, None)
     region = (height + r) * (width + 2 * r)             # the largest pair region (below)
     store = {name: torch.empty(c * region) for name, c in (("diff", 3 * groups), ("sum", groups),
                                                           ("low", groups), ("scale", groups))}
@@ -618,18 +586,13 @@ def nlm_pass(colour: torch.Tensor, variance: torch.Tensor, k: float = 0.45, radi
                 # the loop down 1.3-1.7x on CPUs (measured at 1280x720)
                 w.clamp_(0.0, NLM_CUT).neg_().exp_().sub_(math.exp(-NLM_CUT))
                 den.add_(w)
-                if var_num is not None:
-                    var_num.addcmul_(torch.mul(w, w, out=w2), domains[0][1][window])
                 if d_a is not None:
-                    num_a.addcmul_(torch.mul(w, chose_a, out=w_a), averaged[1][window])
+                    num_a.addcmul_(torch.mul(w, chose_a, out=w_a), domains[1][0][window])
                     w.sub_(w_a)
-                num.addcmul_(w, averaged[0][window])
+                num.addcmul_(w, domains[0][0][window])
     if albedo is not None:
         num.addcmul_(num_a, a)
-    out = (num / den)[0]
-    if var_num is None:
-        return out
-    return out, (var_num / den.square()).reshape(variance.shape)
+    return (num / den)[0]
 
 
 def box_sum(x: torch.Tensor, half: int, rows: torch.Tensor, out: torch.Tensor) -> torch.Tensor:
@@ -849,7 +812,7 @@ def guide_images(estimates: np.ndarray, albedo: np.ndarray, normal: np.ndarray, 
         estimates ``indices``' variances; (3 len(images), H, W)."""
         variance = torch.from_numpy(np.ascontiguousarray(variances[indices], np.float32))
         return nlm_image(torch.cat(images), variance[0] if len(images) == 1 else variance, k, *nlm_window(cfg),
-                         albedo=albedo_t, albedo_penalty=cfg.nlm_albedo, pilot=cfg.nlm_pilot)
+                         albedo=albedo_t, albedo_penalty=cfg.nlm_albedo)
 
     def denoised(image: torch.Tensor, index: int, nlm: bool, k: float) -> torch.Tensor:
         """OIDN's or NL-means' (tolerance ``k``) image of ``image`` (3, H, W), estimate
